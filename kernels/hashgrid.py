@@ -1,0 +1,187 @@
+"""Multi-resolution hash-grid encoding (Instant-NGP) with in-kernel G²fR level masking.
+
+Warp only; the torch wrapper is ``warpnerf/ops/hashgrid.py`` and the pure-torch twin
+``warpnerf/ops/reference/hashgrid.py`` (op name: ``hashgrid_encode``).
+
+Layout
+  x          (N, D)      input points in [0, 1]^D (clamped; D = 1, 2 or 3)
+  table      (rows,)     feature vectors of length F, all levels in one flat table
+  out        (N, L)      feature vectors of length F, i.e. (N, L*F) for torch
+  levels     (K,)        the level ids a launch covers; launches are level-major dim=(K, N)
+  weights    (L,)        G²fR level weights w_m (paper eq. 15); callers leave levels with
+                         w_m = 0 out of ``levels``, so masked levels never touch the table.
+
+Kernels are generated per (D, F, dtype) by :func:`make_hashgrid_kernels`; float64 exists for
+gradcheck. Backward is hand written: one kernel scatters into the table gradient and,
+optionally, accumulates the gradient with respect to x (the pose task's only path to the
+cameras). On CPU the caller gives each thread disjoint levels and its own dx buffer.
+"""
+
+
+import functools
+
+import warp as wp
+
+# Instant-NGP's spatial-hash primes for y and z (x uses 1); uint32 arithmetic wraps like the paper's
+PRIME_Y = wp.constant(wp.uint32(2654435761))
+PRIME_Z = wp.constant(wp.uint32(805459861))
+
+
+@wp.func
+def hashgrid_row(ix: int, iy: int, iz: int, s: int, hashed: int, hash_mask: wp.uint32, offset: int):
+    """Flat table row of grid point (ix, iy, iz) of a level with s points per axis."""
+    if hashed != 0:
+        h = wp.uint32(ix) ^ (wp.uint32(iy) * PRIME_Y) ^ (wp.uint32(iz) * PRIME_Z)
+        return offset + int(h & hash_mask)
+    return offset + ix + s * (iy + s * iz)
+
+
+@wp.func
+def hashgrid_cell(u: float, s: int):
+    """Base grid point, fraction and d(position)/du for one coordinate u at a level of s points.
+
+    Coordinates outside [0, 1] (and NaN) are clamped, so their derivative is 0; x = 1 lands at
+    fraction 1 of the last cell instead of reading past the grid.
+    """
+    inside = float(1.0)
+    if not (u >= 0.0):  # also catches NaN: never index the table with garbage
+        u = 0.0
+        inside = 0.0
+    if u > 1.0:
+        u = 1.0
+        inside = 0.0
+    p = u * float(s - 1)
+    base = wp.min(int(wp.floor(p)), s - 2)
+    return base, p - float(base), inside * float(s - 1)
+
+
+@wp.func
+def hashgrid_cell64(u: wp.float64, s: int):
+    """float64 twin of :func:`hashgrid_cell` (used by gradcheck kernels)."""
+    inside = wp.float64(1.0)
+    if not (u >= wp.float64(0.0)):
+        u = wp.float64(0.0)
+        inside = wp.float64(0.0)
+    if u > wp.float64(1.0):
+        u = wp.float64(1.0)
+        inside = wp.float64(0.0)
+    p = u * wp.float64(s - 1)
+    base = wp.min(int(wp.floor(p)), s - 2)
+    return base, p - wp.float64(base), inside * wp.float64(s - 1)
+
+
+@functools.lru_cache(maxsize=None)
+def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
+    """Return ``(forward, backward, vec_type)`` kernels for input dimension ``dim`` and F = ``n_features``."""
+    if dim not in (1, 2, 3):
+        raise ValueError(f"hash grid input dimension must be 1, 2 or 3, got {dim}")
+    vec = wp.types.vector(length=n_features, dtype=dtype)
+    cell = hashgrid_cell64 if dtype == wp.float64 else hashgrid_cell
+    n_corners = 1 << dim
+    one = dtype(1.0)
+    zero = dtype(0.0)
+
+    @wp.func
+    def corner_weight(c: int, fx: dtype, fy: dtype, fz: dtype):
+        # interpolation weight of corner c (bit d set = upper neighbour along axis d)
+        w = wp.where((c & 1) != 0, fx, one - fx)
+        if wp.static(dim >= 2):
+            w = w * wp.where((c & 2) != 0, fy, one - fy)
+        if wp.static(dim >= 3):
+            w = w * wp.where((c & 4) != 0, fz, one - fz)
+        return w
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def hashgrid_encode_fwd(
+        x: wp.array2d(dtype=dtype),
+        table: wp.array(dtype=vec),
+        levels: wp.array(dtype=wp.int32),
+        resolutions: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        hashed: wp.array(dtype=wp.int32),
+        hash_mask: wp.uint32,
+        weights: wp.array(dtype=dtype),
+        start: int,
+        out: wp.array2d(dtype=vec),
+    ):
+        j, i = wp.tid()
+        lvl = levels[j]
+        n = start + i
+        s = resolutions[lvl]
+        off = offsets[lvl]
+        hsh = hashed[lvl]
+        bx, fx, dx_ = cell(x[n, 0], s)
+        by, fy, dy_ = 0, zero, zero
+        bz, fz, dz_ = 0, zero, zero
+        if wp.static(dim >= 2):
+            by, fy, dy_ = cell(x[n, 1], s)
+        if wp.static(dim >= 3):
+            bz, fz, dz_ = cell(x[n, 2], s)
+        acc = vec()
+        for c in range(wp.static(n_corners)):
+            row = hashgrid_row(bx + (c & 1), by + ((c >> 1) & 1), bz + ((c >> 2) & 1), s, hsh, hash_mask, off)
+            acc = acc + corner_weight(c, fx, fy, fz) * table[row]
+        out[n, lvl] = acc * weights[lvl]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def hashgrid_encode_bwd(
+        x: wp.array2d(dtype=dtype),
+        table: wp.array(dtype=vec),
+        grad_out: wp.array2d(dtype=vec),
+        levels: wp.array(dtype=wp.int32),
+        resolutions: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        hashed: wp.array(dtype=wp.int32),
+        hash_mask: wp.uint32,
+        weights: wp.array(dtype=dtype),
+        want_table: int,
+        want_x: int,
+        grad_table: wp.array(dtype=vec),
+        grad_x: wp.array2d(dtype=dtype),
+    ):
+        j, n = wp.tid()
+        lvl = levels[j]
+        s = resolutions[lvl]
+        off = offsets[lvl]
+        hsh = hashed[lvl]
+        g = grad_out[n, lvl] * weights[lvl]
+        bx, fx, dx_ = cell(x[n, 0], s)
+        by, fy, dy_ = 0, zero, zero
+        bz, fz, dz_ = 0, zero, zero
+        if wp.static(dim >= 2):
+            by, fy, dy_ = cell(x[n, 1], s)
+        if wp.static(dim >= 3):
+            bz, fz, dz_ = cell(x[n, 2], s)
+        gx = zero
+        gy = zero
+        gz = zero
+        for c in range(wp.static(n_corners)):
+            ux = (c & 1) != 0
+            uy = (c & 2) != 0
+            uz = (c & 4) != 0
+            row = hashgrid_row(bx + (c & 1), by + ((c >> 1) & 1), bz + ((c >> 2) & 1), s, hsh, hash_mask, off)
+            wx = wp.where(ux, fx, one - fx)
+            wy = one
+            wz = one
+            if wp.static(dim >= 2):
+                wy = wp.where(uy, fy, one - fy)
+            if wp.static(dim >= 3):
+                wz = wp.where(uz, fz, one - fz)
+            if want_table != 0:
+                wp.atomic_add(grad_table, row, (wx * wy * wz) * g)
+            if want_x != 0:
+                # d(corner weight)/d(fraction) is +-1 times the other axes' weights
+                gf = wp.dot(g, table[row])
+                gx += gf * wp.where(ux, one, -one) * wy * wz
+                if wp.static(dim >= 2):
+                    gy += gf * wp.where(uy, one, -one) * wx * wz
+                if wp.static(dim >= 3):
+                    gz += gf * wp.where(uz, one, -one) * wx * wy
+        if want_x != 0:
+            wp.atomic_add(grad_x, n, 0, gx * dx_)
+            if wp.static(dim >= 2):
+                wp.atomic_add(grad_x, n, 1, gy * dy_)
+            if wp.static(dim >= 3):
+                wp.atomic_add(grad_x, n, 2, gz * dz_)
+
+    return hashgrid_encode_fwd, hashgrid_encode_bwd, vec

@@ -1,0 +1,16 @@
+import os
+
+import pytest
+
+# Keep compiled Warp kernels between test runs unless the caller chose a cache.
+os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(__file__), "..", ".warp_cache"))
+
+
+@pytest.fixture
+def threads():
+    """Set the CPU thread count for one test and restore it afterwards."""
+    from warpnerf import device
+
+    before = device.num_threads()
+    yield device.set_num_threads
+    device.set_num_threads(before)

@@ -1,0 +1,96 @@
+"""Input encodings as torch modules: the multi-resolution hash grid (Warp op), NeRF's
+positional encoding, and spherical harmonics for view directions.
+
+The hash grid is the one G²fR masks: ``HashGridEncoder.forward(x, level_weights)`` takes the
+per-level weights produced by :class:`warpnerf.freq_mask.G2fRSchedule`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from .ops.hashgrid import HashGridSpec, hashgrid_encode
+
+
+class HashGridEncoder(nn.Module):
+    """Instant-NGP multi-resolution hash grid with a learnable flat table (``self.table``).
+
+    Input (N, D) points in [0, 1]^D (clamped), output (N, L*F).
+    """
+
+    def __init__(self, spec: HashGridSpec, init_scale: float = 1e-4, generator: torch.Generator | None = None):
+        super().__init__()
+        self.spec = spec
+        # Instant-NGP initialises features uniformly in [-1e-4, 1e-4]
+        init = (torch.rand(spec.n_rows, spec.n_features, generator=generator) * 2 - 1) * init_scale
+        self.table = nn.Parameter(init)
+
+    @property
+    def out_dim(self) -> int:
+        return self.spec.out_dim
+
+    def forward(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+        return hashgrid_encode(x.contiguous(), self.table, self.spec, level_weights)
+
+    def extra_repr(self) -> str:
+        s = self.spec
+        return f"dim={s.dim}, levels={s.n_levels}, features={s.n_features}, T=2^{s.log2_table_size}, res={s.resolutions[0]}..{s.resolutions[-1]}"
+
+
+class PositionalEncoder(nn.Module):
+    """NeRF positional encoding: [x, sin(2^k pi x), cos(2^k pi x)] for k < n_freqs.
+
+    Input (N, D), output (N, D * (2 * n_freqs + include_input)).
+    """
+
+    def __init__(self, in_dim: int, n_freqs: int, include_input: bool = True):
+        super().__init__()
+        self.in_dim, self.n_freqs, self.include_input = in_dim, n_freqs, include_input
+        self.register_buffer("freqs", (2.0 ** torch.arange(n_freqs)) * math.pi, persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.in_dim * (2 * self.n_freqs + int(self.include_input))
+
+    def forward(self, x: torch.Tensor, band_weights: torch.Tensor | None = None) -> torch.Tensor:
+        """``band_weights`` (n_freqs,) optionally masks frequency bands (BARF / FreeNeRF style)."""
+        arg = x[..., None, :] * self.freqs[:, None].to(x.dtype)  # (N, K, D)
+        enc = torch.cat([torch.sin(arg), torch.cos(arg)], dim=-1)  # (N, K, 2D)
+        if band_weights is not None:
+            enc = enc * band_weights.to(enc)[:, None]
+        enc = enc.flatten(-2)
+        return torch.cat([x, enc], dim=-1) if self.include_input else enc
+
+
+class SphericalHarmonicsEncoder(nn.Module):
+    """Real spherical harmonics of unit directions up to degree 3 (16 outputs), as in Instant-NGP."""
+
+    out_dim = 16
+
+    def forward(self, d: torch.Tensor) -> torch.Tensor:
+        x, y, z = d.unbind(-1)
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        return torch.stack(
+            [
+                torch.full_like(x, 0.28209479177387814),
+                -0.48860251190291987 * y,
+                0.48860251190291987 * z,
+                -0.48860251190291987 * x,
+                1.0925484305920792 * xy,
+                -1.0925484305920792 * yz,
+                0.94617469575755997 * zz - 0.31539156525251999,
+                -1.0925484305920792 * xz,
+                0.54627421529603959 * (xx - yy),
+                0.59004358992664352 * y * (-3.0 * xx + yy),
+                2.8906114426405538 * xy * z,
+                0.45704579946446572 * y * (1.0 - 5.0 * zz),
+                0.3731763325901154 * z * (5.0 * zz - 3.0),
+                0.45704579946446572 * x * (1.0 - 5.0 * zz),
+                1.4453057213202769 * z * (xx - yy),
+                0.59004358992664352 * x * (-xx + 3.0 * yy),
+            ],
+            dim=-1,
+        )
