@@ -128,15 +128,15 @@ class _Launcher:
         if n == 0 or not active:
             return out.view(n, spec.out_dim)
         args = dict(
-            x=wp.from_torch(x, dtype=self.wp_dtype),
-            table=wp.from_torch(table, dtype=self.vec),
+            x=wp.from_torch(x, dtype=self.wp_dtype, requires_grad=False),
+            table=wp.from_torch(table, dtype=self.vec, requires_grad=False),
             levels=self.levels(active),
             resolutions=self.resolutions,
             offsets=self.offsets,
             hashed=self.hashed,
             hash_mask=self.hash_mask,
-            weights=wp.from_torch(weights, dtype=self.wp_dtype),
-            out=wp.from_torch(out, dtype=self.vec),
+            weights=wp.from_torch(weights, dtype=self.wp_dtype, requires_grad=False),
+            out=wp.from_torch(out, dtype=self.vec, requires_grad=False),
         )
         chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
 
@@ -162,11 +162,11 @@ class _Launcher:
             return (grad_x_parts.sum(0) if want_x else None), grad_table
         go = grad_out.contiguous().view(n, spec.n_levels, spec.n_features)
         common = [
-            wp.from_torch(x, dtype=self.wp_dtype),
-            wp.from_torch(table, dtype=self.vec),
-            wp.from_torch(go, dtype=self.vec),
+            wp.from_torch(x, dtype=self.wp_dtype, requires_grad=False),
+            wp.from_torch(table, dtype=self.vec, requires_grad=False),
+            wp.from_torch(go, dtype=self.vec, requires_grad=False),
         ]
-        meta = [self.resolutions, self.offsets, self.hashed, self.hash_mask, wp.from_torch(weights, dtype=self.wp_dtype),
+        meta = [self.resolutions, self.offsets, self.hashed, self.hash_mask, wp.from_torch(weights, dtype=self.wp_dtype, requires_grad=False),
                 int(want_table), int(want_x)]
         # kernels need valid arrays even for outputs they skip
         gt = wp.from_torch(grad_table if want_table else table.new_zeros(1, spec.n_features), dtype=self.vec)
@@ -174,7 +174,7 @@ class _Launcher:
 
         def launch(k: int):
             wp.launch(self.bwd, dim=(len(groups[k]), n),
-                      inputs=[*common[:3], self.levels(groups[k]), *meta, gt, wp.from_torch(gx_parts[k], dtype=self.wp_dtype)],
+                      inputs=[*common[:3], self.levels(groups[k]), *meta, gt, wp.from_torch(gx_parts[k], dtype=self.wp_dtype, requires_grad=False)],
                       device=self.device)
 
         run_chunks([lambda k=k: launch(k) for k in range(len(groups))])

@@ -1,0 +1,108 @@
+"""Occupancy-grid ray marching with a fixed step along t.
+
+Warp only; the torch wrapper is ``warpnerf/ops/raymarch.py`` and the pure-torch twin
+``warpnerf/ops/reference/raymarch.py`` (op name: ``march_rays``).
+
+Per ray, x(t) = o + t d. The marched interval [t0, t1] is [near, far] intersected with the
+ray-box interval. Candidate sample k covers
+    t_start = t0 + (k + u) * step,   t_end = min(t_start + step, t1),   while t_start < t1,
+where u in [0, 1) is the ray's jitter. It is emitted when its midpoint lies in an occupied cell
+(which also means inside the box), at most ``max_samples`` per ray.
+
+One kernel serves both passes (count, then fill at the ray's packed offset) so the two passes
+run the same loop and cannot disagree. Every step tests its cell: that costs ~4 ns per step on
+CPU, while jumping to the exit of an empty cell (DDA) measured 3x slower overall at the usual
+2-5 steps per cell, and a jump could disagree with the per-midpoint rule at cell faces.
+"""
+
+import warp as wp
+
+from .occupancy import cell_index, grid_coords
+
+wp.set_module_options({"enable_backward": False})
+
+# float(k) must be exact, so k stays below 2^24
+MAX_STEPS = wp.constant(16777216)
+
+
+@wp.func
+def ray_aabb_interval(o: wp.vec3, d: wp.vec3, aabb_min: wp.vec3, aabb_max: wp.vec3, near: float, far: float):
+    """[t0, t1] of the ray inside the box and [near, far]; t1 <= t0 when it misses.
+
+    Axes with d = 0 are tested on the origin instead of divided by zero (avoids 0 * inf = NaN);
+    d = 0 on every axis is a miss, or an infinite ``far`` would never end the march.
+    """
+    t0 = near
+    t1 = far
+    if d[0] == 0.0 and d[1] == 0.0 and d[2] == 0.0:
+        t1 = t0
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < aabb_min[a] or o[a] > aabb_max[a]:
+                t1 = t0
+        else:
+            ta = (aabb_min[a] - o[a]) / d[a]
+            tb = (aabb_max[a] - o[a]) / d[a]
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    return wp.vec2(t0, t1)
+
+
+@wp.kernel
+def march_rays(
+    first_ray: int,
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+    jitter: wp.array(dtype=float),
+    has_jitter: int,
+    aabb_min: wp.vec3,
+    aabb_max: wp.vec3,
+    grid_scale: wp.vec3,
+    occ_bitfield: wp.array(dtype=wp.uint8),
+    res: int,
+    near: float,
+    far: float,
+    step: float,
+    max_samples: int,
+    fill: int,
+    ray_offsets: wp.array(dtype=wp.int32),
+    ray_counts: wp.array(dtype=wp.int32),
+    ray_indices: wp.array(dtype=wp.int32),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+):
+    """Count (``fill`` = 0: writes ray_counts) or emit (``fill`` = 1: writes the packed samples
+    at ray_offsets) the samples of rays [first_ray, first_ray + dim)."""
+    r = first_ray + wp.tid()
+    o = rays_o[r]
+    d = rays_d[r]
+    span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
+    t0 = span[0]
+    t1 = span[1]
+    n = int(0)
+    if t1 > t0:
+        u = float(0.0)
+        if has_jitter != 0:
+            u = jitter[r]
+        base = int(0)
+        limit = max_samples
+        if fill != 0:
+            # the fill pass stops at the ray's last sample instead of marching on to t1
+            base = ray_offsets[r]
+            limit = ray_counts[r]
+        k = int(0)
+        while n < limit and k < MAX_STEPS:
+            ts = t0 + (float(k) + u) * step
+            if ts >= t1:
+                break
+            te = wp.min(ts + step, t1)
+            c = cell_index(grid_coords(o + d * (0.5 * (ts + te)), aabb_min, grid_scale), res)
+            if c >= 0 and occ_bitfield[c] != wp.uint8(0):
+                if fill != 0:
+                    ray_indices[base + n] = r
+                    t_starts[base + n] = ts
+                    t_ends[base + n] = te
+                n += 1
+            k += 1
+    if fill == 0:
+        ray_counts[r] = n

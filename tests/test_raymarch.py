@@ -1,0 +1,162 @@
+"""march_rays: Warp kernel vs. its pure-torch twin, plus checks that do not trust either."""
+
+import math
+
+import pytest
+import torch
+
+from warpnerf.device import num_threads, set_num_threads
+from warpnerf.ops.raymarch import march_rays
+from warpnerf.ops.reference.raymarch import march_rays as march_rays_ref
+
+AABB = (-1.5, -1.0, -0.5, 1.5, 1.25, 1.0)  # not a cube: catches axis mix-ups
+RES = 8
+
+
+def random_rays(seed: int, num_rays: int = 512):
+    """Unit rays from inside and outside the box, some with axis-aligned directions (d_a = 0)."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.tensor(AABB[:3]), torch.tensor(AABB[3:])
+    origins = lo - 1.0 + torch.rand(num_rays, 3, generator=g) * (hi - lo + 2.0)
+    dirs = torch.randn(num_rays, 3, generator=g)
+    dirs[: num_rays // 8, 1:] = 0.0
+    dirs[num_rays // 8 : num_rays // 4, 0] = 0.0
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    bitfield = (torch.rand(RES**3, generator=g) < 0.4).to(torch.uint8)
+    jitter = torch.rand(num_rays, generator=g)
+    return origins, dirs, bitfield, jitter
+
+
+def midpoint_cells(samples, origins, dirs):
+    """Float64 grid coordinates of every sample midpoint (independent of the kernel's float32 math)."""
+    ray = samples.ray_indices.long()
+    mid = 0.5 * (samples.t_starts.double() + samples.t_ends.double())
+    p = origins.double()[ray] + dirs.double()[ray] * mid[:, None]
+    lo, hi = torch.tensor(AABB[:3], dtype=torch.float64), torch.tensor(AABB[3:], dtype=torch.float64)
+    return (p - lo) / (hi - lo) * RES
+
+
+@pytest.mark.parametrize("use_grid", [True, False])
+@pytest.mark.parametrize("use_jitter", [False, True])
+def test_matches_twin_exactly(use_grid, use_jitter):
+    origins, dirs, bitfield, jitter = random_rays(0)
+    args = (origins, dirs, AABB, bitfield if use_grid else None, RES, 0.3, 3.5, 0.02)
+    kwargs = dict(jitter=jitter if use_jitter else None)
+    out = march_rays(*args, **kwargs)
+    ref = march_rays_ref(*args, **kwargs)
+    assert out.t_starts.numel() > 1000
+    for name, a, b in zip(out._fields, out, ref):
+        assert a.dtype == b.dtype and torch.equal(a, b), name
+
+
+def test_max_samples_per_ray_keeps_the_first():
+    origins, dirs, bitfield, _ = random_rays(1)
+    full = march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 10.0, 0.01)
+    capped = march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 10.0, 0.01, max_samples_per_ray=7)
+    ref = march_rays_ref(origins, dirs, AABB, bitfield, RES, 0.0, 10.0, 0.01, max_samples_per_ray=7)
+    assert int(full.ray_counts.max()) > 7
+    assert torch.equal(capped.ray_counts, torch.clamp(full.ray_counts, max=7))
+    first = torch.cat([torch.arange(o, o + c) for o, c in zip(full.ray_offsets.tolist(), capped.ray_counts.tolist())])
+    assert torch.equal(capped.t_starts, full.t_starts[first.long()])
+    for a, b in zip(capped, ref):
+        assert torch.equal(a, b)
+
+
+def test_samples_only_in_occupied_cells_inside_the_box():
+    origins, dirs, bitfield, jitter = random_rays(2)
+    near, far, step = 0.3, 3.5, 0.02
+    s = march_rays(origins, dirs, AABB, bitfield, RES, near, far, step, jitter=jitter)
+    g = midpoint_cells(s, origins, dirs)
+    # a midpoint within 1e-5 cells of a face may round to either side in float32 (error ~1e-6 cells)
+    frac = g - g.floor()
+    on_face = ((frac < 1e-5) | (frac > 1 - 1e-5)).any(1)
+    inside = ((g >= 0) & (g < RES)).all(1)
+    cell = g.floor().long().clamp(0, RES - 1)
+    occupied = bitfield[(cell[:, 0] * RES + cell[:, 1]) * RES + cell[:, 2]] == 1
+    assert bool((inside & occupied | on_face).all())
+    assert on_face.float().mean() < 1e-3
+    assert bool((s.t_starts >= near).all() and (s.t_ends <= far).all() and (s.t_ends > s.t_starts).all())
+    # t_end = t_start + step rounded in float32: one ulp of t (2.4e-7 at t < 4) over the step
+    assert bool((s.t_ends - s.t_starts <= step + 2.4e-7).all())
+    # packing: grouped by ray, in order, consistent with offsets and counts
+    assert torch.equal(s.ray_indices, torch.repeat_interleave(torch.arange(len(origins)), s.ray_counts.long()).int())
+    assert torch.equal(s.ray_offsets, (torch.cumsum(s.ray_counts, 0) - s.ray_counts).int())
+    same_ray = s.ray_indices[1:] == s.ray_indices[:-1]
+    assert bool((s.t_starts[1:][same_ray] > s.t_starts[:-1][same_ray]).all())
+
+
+def test_rays_missing_the_box_get_no_samples():
+    origins = torch.tensor([[0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [-5.0, 0.0, 0.0], [-5.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    dirs = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    # away from the box; beside it (parallel); behind the origin; box beyond `far`; inside but near > exit
+    s = march_rays(origins, dirs, AABB, None, RES, near=0.0, far=3.0, step_size=0.01)
+    assert s.ray_counts[:3].tolist() == [0, 0, 0]
+    assert int(s.ray_counts[3]) == 0  # the box starts at t = 3.5 > far
+    s = march_rays(origins[4:], dirs[4:], AABB, None, RES, near=1.5, far=9.0, step_size=0.01)
+    assert s.ray_counts.tolist() == [0] and s.t_starts.numel() == 0
+    # a zero direction inside the box would otherwise march until far = inf
+    s = march_rays(origins[4:], torch.zeros(1, 3), AABB, None, RES, near=0.0, far=math.inf, step_size=0.01)
+    assert s.ray_counts.tolist() == [0]
+
+
+def test_without_grid_samples_cover_the_box_chord():
+    origin, direction = torch.tensor([[-4.0, 0.1, 0.2]]), torch.tensor([[1.0, 0.0, 0.0]])
+    s = march_rays(origin, direction, AABB, None, RES, near=0.0, far=math.inf, step_size=0.25)
+    # the box spans x in [-1.5, 1.5]: t in [2.5, 5.5], 12 steps, the last one ends exactly at the exit
+    assert s.ray_counts.tolist() == [12]
+    assert s.t_starts[0].item() == 2.5 and s.t_ends[-1].item() == 5.5
+    assert torch.equal(s.t_starts[1:], s.t_ends[:-1])
+    jittered = march_rays(origin, direction, AABB, None, RES, 0.0, math.inf, 0.25, jitter=torch.tensor([0.5]))
+    assert jittered.ray_counts.tolist() == [12]
+    assert jittered.t_starts[0].item() == 2.625 and jittered.t_ends[-1].item() == 5.5
+    assert jittered.t_ends[-1] - jittered.t_starts[-1] == 0.125
+
+
+def test_rays_requiring_grad_are_left_alone():
+    origins, dirs, bitfield, _ = random_rays(3, num_rays=16)
+    origins.requires_grad_(True)
+    s = march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 5.0, 0.05)
+    assert origins.grad is None and not s.t_starts.requires_grad
+
+
+def test_two_threads_bit_identical():
+    origins, dirs, bitfield, jitter = random_rays(4, num_rays=1000)
+    before = num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            set_num_threads(threads)
+            results.append(march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 6.0, 0.01, jitter=jitter))
+    finally:
+        set_num_threads(before)
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
+def test_no_rays():
+    s = march_rays(torch.zeros(0, 3), torch.zeros(0, 3), AABB, None, RES, 0.0, 1.0, 0.1)
+    assert all(x.shape == (0,) for x in s)
+
+
+def test_bad_inputs_raise():
+    origins, dirs, bitfield, jitter = random_rays(5, num_rays=4)
+    ok = dict(rays_o=origins, rays_d=dirs, aabb=AABB, occ_bitfield=bitfield, occ_resolution=RES, near=0.0, far=5.0,
+              step_size=0.1)
+    bad = [
+        (TypeError, "rays_o must be float32", dict(rays_o=origins.double())),
+        (TypeError, "rays_d must be a torch tensor", dict(rays_d=dirs.tolist())),
+        (ValueError, r"rays_d must have shape \(R, 3\)", dict(rays_d=dirs[:, :2])),
+        (ValueError, "differ in shape", dict(rays_d=dirs[:3])),
+        (TypeError, "occ_bitfield must be a uint8", dict(occ_bitfield=bitfield.bool())),
+        (ValueError, "occ_bitfield must have shape", dict(occ_resolution=RES + 1)),
+        (ValueError, "aabb must have 6", dict(aabb=AABB[:5])),
+        (ValueError, "min < max", dict(aabb=(0, 0, 0, 1, -1, 1))),
+        (ValueError, "step_size > 0", dict(step_size=0.0)),
+        (ValueError, "near <= far", dict(near=2.0, far=1.0)),
+        (ValueError, "max_samples_per_ray", dict(max_samples_per_ray=0)),
+        (ValueError, "jitter must have shape", dict(jitter=jitter[:2])),
+        (TypeError, "jitter must be a float32", dict(jitter=jitter.double())),
+    ]
+    for error, message, change in bad:
+        with pytest.raises(error, match=message):
+            march_rays(**{**ok, **change})

@@ -1,0 +1,223 @@
+"""``march_rays``: occupancy-grid ray marching into packed samples (Warp kernel, no gradient).
+
+Two passes over the rays with the same kernel: count samples per ray, exclusive cumsum in
+torch, fill the packed arrays. Outputs are per ray and disjoint, so on CPU the rays are split
+into fixed chunks (see :mod:`warpnerf.device`) that run on the thread pool; on CUDA each pass
+is one launch. The result never depends on the thread count.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Sequence
+
+import torch
+
+from ..device import init_warp, run_chunks, split_range
+
+__all__ = ["march_rays", "PackedSamples", "launch_over_rays", "as_warp", "aabb_floats"]
+
+# fixed number of CPU ray chunks: rays differ a lot in cost (box misses, empty space), and
+# four chunks balance two threads better than two; the launch overhead (~15 us each) is negligible
+_CPU_RAY_CHUNKS = 4
+
+
+class PackedSamples(NamedTuple):
+    """Samples of all rays in one flat array, grouped by ray in ray order.
+
+    Samples of ray r are ``[ray_offsets[r], ray_offsets[r] + ray_counts[r])``.
+    """
+
+    ray_indices: torch.Tensor  # (S,) int32, ray of each sample, non-decreasing
+    t_starts: torch.Tensor  # (S,) float32, interval start along the ray (units of t, see march_rays)
+    t_ends: torch.Tensor  # (S,) float32, interval end
+    ray_offsets: torch.Tensor  # (R,) int32, index of the ray's first sample
+    ray_counts: torch.Tensor  # (R,) int32, number of samples of the ray
+
+
+def march_rays(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb: Sequence[float],
+    occ_bitfield: Optional[torch.Tensor],
+    occ_resolution: int,
+    near: float,
+    far: float,
+    step_size: float,
+    max_samples_per_ray: int = 1024,
+    jitter: Optional[torch.Tensor] = None,
+) -> PackedSamples:
+    """March rays through the occupied cells of the scene box with a fixed step.
+
+    A ray is x(t) = o + t d. ``t``, ``near``, ``far`` and ``step_size`` are in units of |d|:
+    pass unit directions to make them metric distances. The marched interval [t0, t1] is
+    [near, far] intersected with the ray's interval inside the box. Sample k covers
+    ``[t0 + (k + u) step, min(t0 + (k + 1 + u) step, t1)]`` with u = ``jitter[r]`` (0 without
+    jitter), and is kept when its midpoint lies in an occupied cell of the grid. Only the last
+    sample of a ray can be shorter than ``step_size``; with jitter, [t0, t0 + u step) is left
+    out, which fresh offsets every iteration average away. Non-contiguous inputs are copied.
+
+    Args:
+        rays_o: (R, 3) float32 ray origins.
+        rays_d: (R, 3) float32 ray directions (unit length recommended, see above).
+        aabb: 6 floats (xmin, ymin, zmin, xmax, ymax, zmax), the box the grid covers.
+        occ_bitfield: (res^3,) uint8, 1 = occupied, cell (ix, iy, iz) at (ix * res + iy) * res + iz
+            (:class:`warpnerf.occupancy.OccupancyGrid` layout); ``None`` = the whole box is occupied.
+        occ_resolution: res, cells per axis.
+        near, far: clip range of t (``far`` may be ``inf``: the box bounds the march).
+        step_size: sample spacing along t, > 0.
+        max_samples_per_ray: cap on the samples of one ray (the first ones along the ray are kept).
+        jitter: optional (R,) float32 in [0, 1), per-ray shift of the first sample in units of
+            ``step_size``; stratified training draws ``torch.rand(R, generator=g)``.
+
+    Returns:
+        :class:`PackedSamples` on the device of ``rays_o``. Not differentiable: the outputs carry
+        no gradient w.r.t. the rays; recompute positions as ``o[ray] + t * d[ray]`` in torch.
+
+    Example:
+        >>> o = torch.tensor([[0.0, 0.0, -3.0]]); d = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> s = march_rays(o, d, (-1, -1, -1, 1, 1, 1), None, 1, near=0.0, far=10.0, step_size=0.5)
+        >>> s.t_starts.tolist()
+        [2.0, 2.5, 3.0, 3.5]
+    """
+    lo, hi = aabb_floats(aabb)
+    _check_rays(rays_o, rays_d, jitter)
+    res = _check_grid(occ_bitfield, occ_resolution, rays_o.device)
+    near, far, step_size = float(near), float(far), float(step_size)
+    if not (step_size > 0.0 and near == near and far == far and near <= far):
+        raise ValueError(
+            f"march_rays: need step_size > 0 and near <= far, got step_size={step_size}, near={near}, far={far}"
+        )
+    if int(max_samples_per_ray) < 1:
+        raise ValueError(f"march_rays: max_samples_per_ray must be >= 1, got {max_samples_per_ray}")
+
+    device = rays_o.device
+    num_rays = rays_o.shape[0]
+    if occ_bitfield is None:
+        # a single always-occupied cell: the kernel then only tests "inside the box"
+        res = 1
+        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
+    counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
+    empty_f = torch.zeros(0, dtype=torch.float32, device=device)
+    if num_rays == 0:
+        return PackedSamples(counts.clone(), empty_f, empty_f.clone(), counts.clone(), counts)
+
+    wp = init_warp()
+    from ..kernels.raymarch import march_rays as kernel
+
+    grid_scale = [res / (h - l) for l, h in zip(lo, hi)]
+    jitter_t = jitter if jitter is not None else empty_f.new_zeros(1)
+    offsets = torch.zeros(num_rays, dtype=torch.int32, device=device)
+    head = [
+        as_warp(rays_o, wp.vec3),
+        as_warp(rays_d, wp.vec3),
+        as_warp(jitter_t),
+        int(jitter is not None),
+        wp.vec3(*lo),
+        wp.vec3(*hi),
+        wp.vec3(*grid_scale),
+        as_warp(occ_bitfield, wp.uint8),
+        res,
+        near,
+        far,
+        step_size,
+        int(max_samples_per_ray),
+    ]
+    ws_counts = as_warp(counts)
+    ws_offsets = as_warp(offsets)
+    dummy_i = as_warp(torch.zeros(1, dtype=torch.int32, device=device))
+    dummy_f = as_warp(torch.zeros(1, dtype=torch.float32, device=device))
+    launch_over_rays(kernel, num_rays, head + [0, ws_offsets, ws_counts, dummy_i, dummy_f, dummy_f], device)
+
+    total = int(counts.sum(dtype=torch.int64))
+    if total >= 2**31:
+        raise ValueError(f"march_rays: {total} samples exceed int32 indexing; march fewer rays at once")
+    torch.cumsum(counts, 0, out=offsets)
+    offsets -= counts
+    ray_indices = torch.empty(total, dtype=torch.int32, device=device)
+    t_starts = torch.empty(total, dtype=torch.float32, device=device)
+    t_ends = torch.empty(total, dtype=torch.float32, device=device)
+    if total > 0:
+        outs = [as_warp(ray_indices), as_warp(t_starts), as_warp(t_ends)]
+        launch_over_rays(kernel, num_rays, head + [1, ws_offsets, ws_counts, *outs], device)
+    return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts)
+
+
+def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) -> None:
+    """Launch a per-ray kernel whose first parameter is ``first_ray`` over ``num_rays`` rays.
+
+    The kernel must write only per-ray (or per-sample-of-ray) outputs: on CPU the rays are cut
+    into ``_CPU_RAY_CHUNKS`` fixed chunks run on the thread pool; on CUDA it is one launch on
+    torch's current stream.
+    """
+    wp = init_warp()
+    if device.type == "cuda":
+        wp_device = wp.device_from_torch(device)
+        wp.launch(kernel, dim=num_rays, inputs=[0, *inputs], device=wp_device, stream=wp.stream_from_torch(device))
+        return
+
+    def launch(lo: int, hi: int):
+        wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device="cpu")
+
+    run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
+
+
+def as_warp(t: torch.Tensor, dtype=None):
+    """Zero-copy Warp view of ``t`` (copied first if not contiguous), never linked to autograd.
+
+    ``wp.from_torch`` would otherwise allocate ``t.grad`` for tensors that require grad. Output
+    buffers must be contiguous, or the kernel would write into the copy.
+    """
+    wp = init_warp()
+    return wp.from_torch(t.detach().contiguous(), dtype=dtype, requires_grad=False)
+
+
+def aabb_floats(aabb) -> tuple[list[float], list[float]]:
+    """(min corner, max corner) of a 6-float box; ValueError unless min < max on every axis."""
+    if isinstance(aabb, torch.Tensor):
+        aabb = aabb.detach().cpu().reshape(-1).tolist()
+    vals = [float(v) for v in aabb]
+    if len(vals) != 6:
+        raise ValueError(f"aabb must have 6 values (xmin, ymin, zmin, xmax, ymax, zmax), got {len(vals)}")
+    lo, hi = vals[:3], vals[3:]
+    if not all(l < h for l, h in zip(lo, hi)):
+        raise ValueError(f"aabb must have min < max on every axis, got {tuple(vals)}")
+    return lo, hi
+
+
+def _check_rays(rays_o, rays_d, jitter) -> None:
+    for name, t in (("rays_o", rays_o), ("rays_d", rays_d)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"march_rays: {name} must be a torch tensor, got {type(t).__name__}")
+        if t.dtype != torch.float32:
+            raise TypeError(f"march_rays: {name} must be float32, got {t.dtype}")
+        if t.dim() != 2 or t.shape[1] != 3:
+            raise ValueError(f"march_rays: {name} must have shape (R, 3), got {tuple(t.shape)}")
+    if rays_o.shape != rays_d.shape:
+        raise ValueError(f"march_rays: rays_o {tuple(rays_o.shape)} and rays_d {tuple(rays_d.shape)} differ in shape")
+    if rays_o.device != rays_d.device:
+        raise ValueError(f"march_rays: rays_o is on {rays_o.device} but rays_d is on {rays_d.device}")
+    if jitter is not None:
+        if not isinstance(jitter, torch.Tensor) or jitter.dtype != torch.float32:
+            raise TypeError("march_rays: jitter must be a float32 tensor of shape (R,)")
+        if tuple(jitter.shape) != (rays_o.shape[0],) or jitter.device != rays_o.device:
+            raise ValueError(
+                f"march_rays: jitter must have shape ({rays_o.shape[0]},) on {rays_o.device}, "
+                f"got {tuple(jitter.shape)} on {jitter.device}"
+            )
+
+
+def _check_grid(occ_bitfield, occ_resolution, device) -> int:
+    res = int(occ_resolution)
+    if res < 1:
+        raise ValueError(f"march_rays: occ_resolution must be >= 1, got {occ_resolution}")
+    if occ_bitfield is None:
+        return res
+    if not isinstance(occ_bitfield, torch.Tensor) or occ_bitfield.dtype != torch.uint8:
+        raise TypeError("march_rays: occ_bitfield must be a uint8 tensor (1 = occupied) or None")
+    if tuple(occ_bitfield.shape) != (res**3,):
+        raise ValueError(
+            f"march_rays: occ_bitfield must have shape ({res**3},) for resolution {res}, got {tuple(occ_bitfield.shape)}"
+        )
+    if occ_bitfield.device != device:
+        raise ValueError(f"march_rays: occ_bitfield is on {occ_bitfield.device} but the rays are on {device}")
+    return res
