@@ -1,0 +1,396 @@
+"""Built-in procedural scenes: rendered once with Warp ray tracing, cached in the Blender layout.
+
+A built-in scene needs no download: the first ``load_builtin("chair")`` renders 100 train,
+100 val and 200 test views (Blender conventions: z-up world, ``camera_angle_x`` 0.6911,
+cameras at radius 4.03 looking at the origin; train/val from fixed seeds on the upper
+hemisphere, test on a 30° elevation orbit), writes them like a NeRF-synthetic scene and then
+loads that folder with :func:`warpnerf.data.blender.load_blender`.
+
+Cache layout (``$WARPNERF_CACHE``, else ``$XDG_CACHE_HOME/warpnerf``, else ``~/.cache/warpnerf``)::
+
+    <cache>/scenes/chair_200px_g1/                 # <name>_<resolution>px_g<GENERATOR_VERSION>[_n<train>-<val>-<test>]
+        transforms_{train,val,test}.json
+        train/r_0.png  train/r_0_depth.png ...     # RGBA uint8; 16-bit depth, value / depth_scale = camera-z depth
+        .complete                                  # JSON marker, written last
+    <cache>/scenes/.tmp-chair_200px_g1-<pid>-<rand>/   # generation in progress
+
+Generation writes into the temp folder, writes the marker, then renames it into place, so a
+folder without the marker is never loaded: it is deleted and regenerated. Temp folders of
+dead processes are removed. Bump GENERATOR_VERSION whenever the geometry, materials,
+cameras or file format change, so stale caches are never reused.
+
+Images are one ray per pixel centre (no antialiasing), so alpha is exactly 0 or 1 and depth is
+exact; this also matches how NeRF renders a pixel (one ray through its centre).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+import uuid
+
+import numpy as np
+
+from warpnerf.data.builtin_meshes import SCENES, SceneMesh
+from warpnerf.data.errors import DatasetError
+from warpnerf.data.scene import Scene
+
+GENERATOR_VERSION = 1
+DEFAULT_RESOLUTION = 200  # pixels (square): all 400 views render+write in ~5-7 s on 2 shared CPU cores
+DEFAULT_COUNTS = (100, 100, 200)  # train, val, test views
+CAMERA_ANGLE_X = 0.6911112070083618  # radians, the NeRF-synthetic value
+CAMERA_RADIUS = 4.031128874149275  # sqrt(16.25), the NeRF-synthetic camera distance
+TEST_ELEVATION_DEG = 30.0
+DEPTH_SCALE = 5000.0  # depth PNG units per scene unit: 0.2 mm steps, up to 13.1 units
+_SPLIT_SEEDS = {"train": 0, "val": 1}
+_MARKER = ".complete"
+
+# Lighting shared by every scene: a key light from the front-right above (with hard shadows),
+# a weak fill from the back-left below, so no face is lit by the ambient term alone.
+KEY_DIR = (0.42, -0.56, 0.71)
+FILL_DIR = (-0.55, 0.70, -0.45)
+KEY_STRENGTH, FILL_STRENGTH, AMBIENT = 0.62, 0.18, 0.30
+
+
+def builtin_scenes() -> dict[str, str]:
+    """Name -> one-line description of every built-in scene."""
+    return {name: desc for name, (_, desc) in SCENES.items()}
+
+
+def scene_mesh(name: str) -> SceneMesh:
+    """The triangle mesh and materials of a built-in scene."""
+    if name not in SCENES:
+        raise DatasetError(f"unknown built-in scene '{name}'; built-in scenes: {', '.join(SCENES)}")
+    return SCENES[name][0]()
+
+
+# ---- cameras ---------------------------------------------------------------------------------
+
+
+def look_at(eyes: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """(N, 3, 4) OpenGL camera-to-world matrices of cameras at ``eyes`` (N, 3) looking at ``target``.
+
+    No roll: the camera x axis is horizontal (as in Blender's NeRF-synthetic renders).
+    """
+    eyes = np.asarray(eyes, np.float64)
+    back = eyes - np.asarray(target, np.float64)
+    back /= np.linalg.norm(back, axis=-1, keepdims=True)
+    right = np.cross(np.asarray(up, np.float64), back)
+    # Straight above or below the target the up vector is parallel to the view: use y instead.
+    degenerate = np.linalg.norm(right, axis=-1) < 1e-6
+    right[degenerate] = np.cross([0.0, 1.0, 0.0], back[degenerate])
+    right /= np.linalg.norm(right, axis=-1, keepdims=True)
+    cam_up = np.cross(back, right)
+    return np.stack([right, cam_up, back, eyes], axis=-1).astype(np.float32)
+
+
+def hemisphere_cameras(n: int, seed: int, radius: float = CAMERA_RADIUS) -> np.ndarray:
+    """(n, 3, 4) cameras at uniformly random directions on the upper hemisphere (z >= 0)."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.0, 1.0, n)  # uniform z <=> uniform area on the hemisphere (Archimedes)
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - z * z)
+    return look_at(radius * np.stack([s * np.cos(phi), s * np.sin(phi), z], -1))
+
+
+def orbit_cameras(n: int, elevation_deg: float = TEST_ELEVATION_DEG, radius: float = CAMERA_RADIUS) -> np.ndarray:
+    """(n, 3, 4) cameras evenly spaced on a circle at fixed elevation (degrees above the horizon)."""
+    phi = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    el = math.radians(elevation_deg)
+    return look_at(radius * np.stack([math.cos(el) * np.cos(phi), math.cos(el) * np.sin(phi), np.full(n, math.sin(el))], -1))
+
+
+def split_cameras(counts=DEFAULT_COUNTS) -> dict[str, np.ndarray]:
+    """The (N, 3, 4) cameras of each split of every built-in scene."""
+    n_train, n_val, n_test = counts
+    return {
+        "train": hemisphere_cameras(n_train, _SPLIT_SEEDS["train"]),
+        "val": hemisphere_cameras(n_val, _SPLIT_SEEDS["val"]),
+        "test": orbit_cameras(n_test),
+    }
+
+
+def focal_from_angle(width: int, camera_angle_x: float = CAMERA_ANGLE_X) -> float:
+    """Focal length in pixels for a horizontal field of view in radians."""
+    return 0.5 * width / math.tan(0.5 * camera_angle_x)
+
+
+# ---- rendering -------------------------------------------------------------------------------
+
+
+class MeshRenderer:
+    """A scene mesh uploaded to Warp once, rendered from any cameras.
+
+    Args:
+        mesh: geometry + materials.
+        device: Warp device. CPU by default so cached datasets are identical on any machine.
+        shadows: trace a shadow ray towards the key light.
+    """
+
+    def __init__(self, mesh: SceneMesh, device: str = "cpu", shadows: bool = True):
+        from warpnerf.device import init_warp
+
+        wp = init_warp()
+        from warpnerf.kernels import raytrace
+
+        self._wp, self._kernel, self.device, self.shadows = wp, raytrace.render_mesh, device, shadows
+        # Compile/load now, on this thread: worker threads launching an unloaded module
+        # concurrently would each compile it.
+        wp.load_module(raytrace, device=device)
+        arr = lambda x, dt: wp.array(x, dtype=dt, device=device)  # noqa: E731
+        self._points = arr(mesh.points, wp.vec3)
+        self._indices = arr(mesh.faces.reshape(-1), wp.int32)
+        self._mesh = wp.Mesh(points=self._points, indices=self._indices)
+        mats = mesh.materials
+        self._tables = [
+            self._indices,
+            arr(mesh.normals, wp.vec3),
+            arr(mesh.face_material, wp.int32),
+            arr(np.array([m.pattern for m in mats], np.int32), wp.int32),
+            arr(np.array([m.color_a for m in mats], np.float32), wp.vec3),
+            arr(np.array([m.color_b for m in mats], np.float32), wp.vec3),
+            arr(np.array([m.freq for m in mats], np.float32), wp.float32),
+            arr(np.array([m.axis for m in mats], np.int32), wp.int32),
+            arr(np.array([m.origin for m in mats], np.float32), wp.vec3),
+        ]
+
+    def render(self, c2w: np.ndarray, width: int, height: int, focal: float) -> tuple[np.ndarray, np.ndarray]:
+        """Render views; returns rgba (N, H, W, 4) float32 in [0, 1] (straight alpha, exactly 0/1)
+        and depth (N, H, W) float32 camera-z distance in scene units, 0 where the ray misses.
+
+        ``c2w`` is (N, 3, 4) OpenGL; the principal point is the image centre. On CPU the views
+        are split over the worker threads (each launch runs on one thread).
+        """
+        from warpnerf.device import num_threads, run_chunks, split_range
+
+        wp = self._wp
+        c2w = np.asarray(c2w, np.float32).reshape(-1, 3, 4)
+        n = len(c2w)
+        rgba = np.empty((n, height, width, 4), np.float32)
+        depth = np.empty((n, height, width), np.float32)
+        norm = lambda v: wp.vec3(*(np.asarray(v) / np.linalg.norm(v)))  # noqa: E731
+
+        def task(lo: int, hi: int):
+            def run():
+                out_rgba = wp.empty((hi - lo, height, width), dtype=wp.vec4, device=self.device)
+                out_depth = wp.empty((hi - lo, height, width), dtype=wp.float32, device=self.device)
+                wp.launch(
+                    self._kernel,
+                    dim=(hi - lo, height, width),
+                    inputs=[
+                        self._mesh.id,
+                        *self._tables,
+                        wp.array(np.ascontiguousarray(c2w[lo:hi, :, :3]), dtype=wp.mat33, device=self.device),
+                        wp.array(np.ascontiguousarray(c2w[lo:hi, :, 3]), dtype=wp.vec3, device=self.device),
+                        float(focal),
+                        width / 2.0,
+                        height / 2.0,
+                        norm(KEY_DIR),
+                        KEY_STRENGTH,
+                        norm(FILL_DIR),
+                        FILL_STRENGTH,
+                        AMBIENT,
+                        int(self.shadows),
+                    ],
+                    outputs=[out_rgba, out_depth],
+                    device=self.device,
+                )
+                rgba[lo:hi] = out_rgba.numpy().reshape(hi - lo, height, width, 4)
+                depth[lo:hi] = out_depth.numpy()
+
+            return run
+
+        threads = num_threads() if self.device == "cpu" else 1
+        run_chunks([task(lo, hi) for lo, hi in split_range(n, threads) if hi > lo])
+        return rgba, depth
+
+
+# ---- cache -----------------------------------------------------------------------------------
+
+
+def cache_root(cache_dir: str | None = None) -> str:
+    """Folder holding generated scenes: ``cache_dir``, ``$WARPNERF_CACHE``, ``$XDG_CACHE_HOME/warpnerf``
+    or ``~/.cache/warpnerf`` (first one set), plus ``/scenes``."""
+    base = cache_dir or os.environ.get("WARPNERF_CACHE")
+    if not base:
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        base = os.path.join(xdg, "warpnerf") if xdg else os.path.join(os.path.expanduser("~"), ".cache", "warpnerf")
+    return os.path.join(os.path.abspath(os.path.expanduser(base)), "scenes")
+
+
+def cache_key(name: str, resolution: int, counts=DEFAULT_COUNTS) -> str:
+    key = f"{name}_{resolution}px_g{GENERATOR_VERSION}"
+    if tuple(counts) != DEFAULT_COUNTS:
+        key += "_n" + "-".join(str(c) for c in counts)
+    return key
+
+
+def is_complete(folder: str) -> bool:
+    """True when ``folder`` holds a finished generation (its marker exists and parses)."""
+    try:
+        with open(os.path.join(folder, _MARKER), encoding="utf-8") as f:
+            return json.load(f).get("generator_version") == GENERATOR_VERSION
+    except (OSError, ValueError):
+        return False
+
+
+def _cache_error(path: str, exc: OSError | str) -> DatasetError:
+    why = exc if isinstance(exc, str) else (exc.strerror or str(exc))
+    return DatasetError(
+        f"built-in scene cache {path} is not usable ({why}); set WARPNERF_CACHE to a writable folder"
+    )
+
+
+def ensure_builtin(
+    name: str,
+    resolution: int | None = None,
+    cache_dir: str | None = None,
+    counts=DEFAULT_COUNTS,
+    progress: bool = True,
+) -> str:
+    """Generate the built-in scene if its cache folder is missing or incomplete; returns the folder."""
+    if name not in SCENES:
+        raise DatasetError(f"unknown built-in scene '{name}'; built-in scenes: {', '.join(SCENES)}")
+    resolution = int(resolution or DEFAULT_RESOLUTION)
+    if resolution < 1:
+        raise DatasetError(f"resolution must be a positive number of pixels, got {resolution}")
+    root = cache_root(cache_dir)
+    final = os.path.join(root, cache_key(name, resolution, counts))
+    if is_complete(final):
+        if not os.access(final, os.R_OK | os.X_OK):
+            raise _cache_error(final, "not readable")
+        return final
+    try:
+        os.makedirs(root, exist_ok=True)
+        _remove_stale_temps(root, cache_key(name, resolution, counts))
+        if os.path.exists(final):  # a folder without its marker: interrupted or tampered with
+            shutil.rmtree(final)
+        tmp = os.path.join(root, f".tmp-{cache_key(name, resolution, counts)}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+        os.makedirs(tmp)
+    except OSError as exc:
+        raise _cache_error(root, exc) from None
+    try:
+        generate_builtin(name, tmp, resolution, counts, progress)
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not is_complete(final):  # another process finished first: theirs is as good as ours
+                raise
+    except OSError as exc:
+        raise _cache_error(root, exc) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return final
+
+
+def _remove_stale_temps(root: str, key: str) -> None:
+    """Delete temp folders of ``key`` left by processes that no longer exist."""
+    prefix = f".tmp-{key}-"
+    for entry in os.listdir(root):
+        if not entry.startswith(prefix):
+            continue
+        try:
+            pid = int(entry[len(prefix) :].split("-")[0])
+            os.kill(pid, 0)
+            continue  # still running: maybe another process generating the same scene
+        except (ValueError, ProcessLookupError):
+            pass
+        except PermissionError:
+            continue  # exists, owned by someone else
+        shutil.rmtree(os.path.join(root, entry), ignore_errors=True)
+
+
+def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTION, counts=DEFAULT_COUNTS, progress: bool = True) -> None:
+    """Render a built-in scene into ``out_dir`` in the Blender layout, marker file last."""
+    from PIL import Image
+    from tqdm import tqdm
+
+    from warpnerf.data.images import load_parallel
+
+    t0 = time.time()
+    renderer = MeshRenderer(scene_mesh(name))
+    width = height = resolution
+    focal = focal_from_angle(width)
+    cams = split_cameras(counts)
+    bar = tqdm(
+        total=sum(len(c) for c in cams.values()),
+        desc=f"rendering built-in scene '{name}' at {width}x{height}",
+        unit="view",
+        disable=not progress,
+    )
+    batch = 20  # views per render call: bounds memory and keeps the progress bar moving
+    with bar:
+        for split, c2w in cams.items():
+            os.makedirs(os.path.join(out_dir, split), exist_ok=True)
+            frames = []
+            for start in range(0, len(c2w), batch):
+                rgba, depth = renderer.render(c2w[start : start + batch], width, height, focal)
+                rgba8 = np.round(rgba * 255.0).astype(np.uint8)
+                if depth.max() * DEPTH_SCALE > 65535:
+                    raise DatasetError(f"depth {depth.max():.2f} does not fit the 16-bit depth PNG of scene '{name}'")
+                depth16 = np.round(depth * DEPTH_SCALE).astype(np.uint16)
+
+                def write(k: int, stem: str) -> None:
+                    # compress_level 3: ~2x faster than the default 6 for a few % larger files.
+                    Image.fromarray(rgba8[k], "RGBA").save(os.path.join(out_dir, stem + ".png"), compress_level=3)
+                    Image.fromarray(depth16[k]).save(os.path.join(out_dir, stem + "_depth.png"), compress_level=3)
+
+                stems = [f"{split}/r_{start + k}" for k in range(len(rgba))]
+                load_parallel(stems, write, threads=2)
+                for k, stem in enumerate(stems):
+                    frames.append(
+                        {
+                            "file_path": f"./{stem}",
+                            "depth_path": f"./{stem}_depth.png",
+                            "transform_matrix": np.vstack([c2w[start + k], [0, 0, 0, 1]]).tolist(),
+                        }
+                    )
+                bar.update(len(rgba))
+            meta = {
+                "camera_angle_x": CAMERA_ANGLE_X,
+                "depth_scale": DEPTH_SCALE,
+                "warpnerf": {"scene": name, "generator_version": GENERATOR_VERSION, "resolution": resolution},
+                "frames": frames,
+            }
+            with open(os.path.join(out_dir, f"transforms_{split}.json"), "w", encoding="utf-8") as f:
+                json.dump(meta, f, indent=1)
+    marker = {
+        "generator_version": GENERATOR_VERSION,
+        "scene": name,
+        "resolution": resolution,
+        "counts": list(counts),
+        "seconds": round(time.time() - t0, 2),
+    }
+    with open(os.path.join(out_dir, _MARKER), "w", encoding="utf-8") as f:
+        json.dump(marker, f)
+
+
+def load_builtin(
+    name: str,
+    resolution: int | None = None,
+    cache_dir: str | None = None,
+    downscale: int = 1,
+    splits: tuple[str, ...] = ("train", "val", "test"),
+    white_background: bool = True,
+    counts=DEFAULT_COUNTS,
+    progress: bool = True,
+) -> Scene:
+    """Generate (once) and load a built-in scene (source "builtin", kind "blender").
+
+    Args:
+        name: one of :func:`builtin_scenes`.
+        resolution: image side in pixels (default DEFAULT_RESOLUTION); each resolution is cached apart.
+        cache_dir: overrides ``$WARPNERF_CACHE``.
+        downscale, splits, white_background: as in :func:`warpnerf.data.blender.load_blender`.
+        counts: (train, val, test) view counts; the defaults follow NeRF-synthetic (100, 100, 200).
+        progress: show a tqdm bar while generating.
+    """
+    from warpnerf.data.blender import load_blender
+
+    folder = ensure_builtin(name, resolution, cache_dir, counts, progress)
+    scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
+    scene.source = "builtin"
+    return scene

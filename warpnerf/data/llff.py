@@ -1,0 +1,223 @@
+"""Loader for forward-facing LLFF scenes (``poses_bounds.npy`` + ``images_<factor>/``), and NDC rays.
+
+``poses_bounds.npy`` is (N, 17) float: per image a 3x5 matrix flattened row-major, then the
+near/far depth bounds of its content. The 3x5 matrix is [R | t | hwf]: rotation columns in
+LLFF order [down, right, back], the camera centre t, and (height, width, focal) in pixels of
+the full-resolution image. Processing follows the original NeRF code:
+
+1. rotation columns -> OpenGL [right, up, back] = [c1, -c0, c2];
+2. intrinsics rescaled to the images actually read (``images_8`` = 1/8 of full resolution);
+3. scale the world so that the nearest bound becomes 1 / bd_factor (bd_factor 0.75: content
+   starts at depth 1.33, safely behind the NDC near plane at 1.0);
+4. recenter: express every pose in the frame of the "average pose" (mean centre, summed back
+   and up axes), so the cameras look down -z around the origin;
+5. hold out every ``holdout``-th image (i % holdout == 0) as the test split.
+
+NDC parametrisation (``scene.ndc`` is True). A camera-space-like ray of the recentred world
+(o, d), with the scene in front along -z, is first moved to the near plane z = -near, then mapped
+by the perspective projection of a camera with the given focal/width/height at the origin:
+
+    o' = ( -f/(W/2) * o_x/o_z,   -f/(H/2) * o_y/o_z,   1 + 2 near / o_z )
+    d' = ( -f/(W/2) * (d_x/d_z - o_x/o_z),  -f/(H/2) * (d_y/d_z - o_y/o_z),  -2 near / o_z )
+
+so points o' + t d' with t in [0, 1] run from the near plane (z' = -1) to infinity (z' = 1),
+and x', y' in [-1, 1] cover the view frustum of the average camera. Hence the scene's
+``near``/``far`` are 0/1 (in t) and its box is [-1, 1]^3. Sampling uniformly in t is sampling
+uniformly in inverse depth, which suits forward-facing scenes with a far background.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+
+from warpnerf.data.errors import DatasetError
+from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
+from warpnerf.data.scene import Scene, Views
+
+LLFF_BD_FACTOR = 0.75
+NDC_AABB = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
+
+
+def load_llff(
+    root: str,
+    factor: int = 8,
+    holdout: int = 8,
+    downscale: int = 1,
+    bd_factor: float = LLFF_BD_FACTOR,
+    recenter: bool = True,
+    name: str | None = None,
+) -> Scene:
+    """Load an LLFF scene folder into a :class:`Scene` (source "dataset", kind "llff", ndc True).
+
+    Args:
+        root: folder holding ``poses_bounds.npy`` and ``images_<factor>/`` (``images/`` for factor 1).
+        factor: which pre-downsampled image folder to read (LLFF convention; fern ships ``images_8``).
+        holdout: every ``holdout``-th image (ids 0, holdout, 2 holdout, ...) is a test view.
+        downscale: extra integer block-average downscale applied after reading.
+        bd_factor: the nearest bound is mapped to depth 1 / bd_factor.
+        recenter: express poses relative to the average pose (required for NDC to make sense;
+            False only for inspecting the raw converted poses).
+        name: scene name (default: the folder name).
+
+    Returns a scene whose ``train``/``test`` views hold (N, H, W, 3) images, OpenGL c2w, and
+    ``val`` None; ``near``/``far`` = 0/1 and ``aabb`` = [-1, 1]^3 are in NDC (see module doc).
+
+    Raises:
+        DatasetError: missing folder/file, wrong array shape, image count or size that does
+            not match the poses.
+    """
+    if not os.path.isdir(root):
+        raise DatasetError(f"scene folder not found: {root}")
+    if holdout < 1 or factor < 1 or downscale < 1:
+        raise DatasetError(f"factor, holdout and downscale must be >= 1, got {factor}, {holdout}, {downscale}")
+    pb_path = os.path.join(root, "poses_bounds.npy")
+    try:
+        pb = np.load(pb_path)
+    except FileNotFoundError:
+        raise DatasetError(f"missing {pb_path}") from None
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {pb_path}: {exc}") from None
+    if pb.ndim != 2 or pb.shape[1] != 17 or len(pb) == 0:
+        raise DatasetError(f"{pb_path}: expected an (N, 17) array, got shape {pb.shape}")
+    pb = pb.astype(np.float64)
+    poses = pb[:, :15].reshape(-1, 3, 5)
+    bounds = pb[:, 15:17]
+    hwf = poses[0, :, 4]
+
+    paths = _image_paths(root, factor, len(poses))
+    first = read_image(paths[0])
+    h_img, w_img = first.shape[:2]
+    if abs(h_img - hwf[0] / factor) > 1.0 or abs(w_img - hwf[1] / factor) > 1.0:
+        raise DatasetError(
+            f"{paths[0]} is {w_img}x{h_img} but poses_bounds.npy says {hwf[1]:.0f}x{hwf[0]:.0f} / {factor} "
+            f"= {hwf[1] / factor:.0f}x{hwf[0] / factor:.0f}"
+        )
+    h, w = h_img // downscale, w_img // downscale
+    images = np.empty((len(paths), h, w, 3), np.float32)
+
+    def load_one(i: int, path: str) -> None:
+        img = first if i == 0 else read_image(path)
+        if img.shape[:2] != (h_img, w_img):
+            raise DatasetError(
+                f"image size mismatch: {path} is {img.shape[1]}x{img.shape[0]}, expected {w_img}x{h_img} like {paths[0]}"
+            )
+        rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
+        images[i] = area_downscale(rgb, downscale)
+
+    load_parallel(paths, load_one)
+
+    c2w = llff_to_opengl(poses[:, :, :4])
+    scale = 1.0 / (bounds.min() * bd_factor)
+    c2w[:, :, 3] *= scale
+    if recenter:
+        c2w = recenter_poses(c2w)
+    # Scale focal by the actual width: folders made by percentage resizes may round the size.
+    focal = hwf[2] * (w_img / hwf[1]) / downscale
+
+    ids = np.arange(len(paths))
+    test_ids = ids[ids % holdout == 0]
+    train_ids = ids[ids % holdout != 0]
+    if len(train_ids) == 0:
+        raise DatasetError(f"{root}: no training views left with holdout {holdout} and {len(ids)} images")
+
+    def views(sel: np.ndarray) -> Views:
+        return Views(
+            images=torch.from_numpy(images[sel]),
+            c2w=torch.from_numpy(c2w[sel].astype(np.float32)),
+            focal=float(focal),
+            cx=w / 2.0,
+            cy=h / 2.0,
+            ids=[int(i) for i in sel],
+        )
+
+    return Scene(
+        name=name or os.path.basename(os.path.normpath(root)),
+        source="dataset",
+        kind="llff",
+        train=views(train_ids),
+        test=views(test_ids),
+        val=None,
+        aabb=NDC_AABB,
+        near=0.0,
+        far=1.0,
+        # Real photos have no background: whatever transmittance is left at infinity is black,
+        # as in the original NeRF LLFF setup.
+        background=(0.0, 0.0, 0.0),
+        ndc=True,
+        root=os.path.abspath(root),
+    )
+
+
+def _image_paths(root: str, factor: int, n_poses: int) -> list[str]:
+    folder = os.path.join(root, "images" if factor == 1 else f"images_{factor}")
+    if not os.path.isdir(folder):
+        found = sorted(d for d in os.listdir(root) if d.startswith("images") and os.path.isdir(os.path.join(root, d)))
+        hint = f"; found {', '.join(found)}: pick the factor to match" if found else ""
+        raise DatasetError(f"missing image folder {folder}{hint}")
+    names = sorted(f for f in os.listdir(folder) if os.path.splitext(f)[1].lower() in IMAGE_SUFFIXES)
+    if len(names) != n_poses:
+        raise DatasetError(f"{folder} holds {len(names)} images but poses_bounds.npy has {n_poses} poses")
+    return [os.path.join(folder, f) for f in names]
+
+
+def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) LLFF [down, right, back | t] -> OpenGL [right, up, back | t] = [c1, -c0, c2 | t]."""
+    poses = np.asarray(poses, np.float64)
+    return np.concatenate([poses[:, :, 1:2], -poses[:, :, 0:1], poses[:, :, 2:4]], axis=2)
+
+
+def average_pose(c2w: np.ndarray) -> np.ndarray:
+    """(3, 4) "average" camera of (N, 3, 4) OpenGL poses: mean centre, back = normalised sum of
+    back axes, right/up made orthonormal from the summed up axes."""
+    centre = c2w[:, :, 3].mean(0)
+    back = _unit(c2w[:, :, 2].sum(0))
+    right = _unit(np.cross(c2w[:, :, 1].sum(0), back))
+    up = _unit(np.cross(back, right))
+    return np.stack([right, up, back, centre], axis=1)
+
+
+def recenter_poses(c2w: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) poses expressed in the frame of their :func:`average_pose`."""
+    avg = np.eye(4)
+    avg[:3] = average_pose(c2w)
+    full = np.concatenate([c2w, np.tile([[[0.0, 0.0, 0.0, 1.0]]], (len(c2w), 1, 1))], axis=1)
+    return (np.linalg.inv(avg) @ full)[:, :3]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def ndc_rays(
+    rays_o: torch.Tensor, rays_d: torch.Tensor, focal: float, width: int, height: int, near: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map world rays of a recentred forward-facing scene to NDC (see the module docstring).
+
+    Args:
+        rays_o: (..., 3) origins, world units (recentred frame, scene along -z).
+        rays_d: (..., 3) directions (need not be unit; must have d_z != 0, i.e. not parallel
+            to the image plane).
+        focal, width, height: intrinsics of the views, pixels.
+        near: depth of the NDC near plane (1.0 with the default bd_factor).
+
+    Returns (o', d'), each (..., 3): the NDC ray is o' + t d' for t in [0, 1] (near plane ->
+    infinity). Plain torch ops: differentiable w.r.t. both inputs (poses in the pose task).
+
+    Example::
+
+        o, d = ndc_rays(torch.zeros(1, 3), torch.tensor([[0.0, 0.0, -1.0]]), 400.0, 504, 378)
+        # o = [[0, 0, -1]], d = [[0, 0, 2]]
+    """
+    # Move origins to the near plane so that t = 0 is z = -near for every ray.
+    t = -(near + rays_o[..., 2]) / rays_d[..., 2]
+    rays_o = rays_o + t[..., None] * rays_d
+    ox, oy, oz = rays_o.unbind(-1)
+    dx, dy, dz = rays_d.unbind(-1)
+    sx = -2.0 * focal / width
+    sy = -2.0 * focal / height
+    o_ndc = torch.stack([sx * ox / oz, sy * oy / oz, 1.0 + 2.0 * near / oz], -1)
+    d_ndc = torch.stack([sx * (dx / dz - ox / oz), sy * (dy / dz - oy / oz), -2.0 * near / oz], -1)
+    return o_ndc, d_ndc

@@ -1,0 +1,184 @@
+"""Scene names -> scenes: a dataset on disk wins over a built-in scene of the same name.
+
+Resolution order for ``load_scene(name)`` with a data root (argument, else ``$WARPNERF_DATA``):
+
+1. ``<root>/nerf_synthetic/<name>``, 2. ``<root>/nerf_llff_data/<name>``, 3. ``<root>/<name>``
+   -- the first folder holding ``transforms_train.json`` (Blender) or ``poses_bounds.npy`` (LLFF);
+4. the built-in scene ``<name>`` (generated and cached on first use);
+5. otherwise a DatasetError listing the built-in and dataset scenes available.
+"""
+
+from __future__ import annotations
+
+import os
+
+from warpnerf.data.errors import DatasetError
+from warpnerf.data.scene import Scene
+
+DATA_ENV = "WARPNERF_DATA"
+_SUBDIRS = ("nerf_synthetic", "nerf_llff_data", "")
+
+
+def data_root_from(data_root: str | None = None) -> str | None:
+    """The data root in use: ``data_root``, else ``$WARPNERF_DATA``, else None.
+
+    Raises DatasetError when the chosen root is not a folder (a typo should not silently fall
+    back to a built-in scene).
+    """
+    if data_root:
+        where = "--data-root"
+    else:
+        data_root, where = os.environ.get(DATA_ENV) or None, f"${DATA_ENV}"
+    if data_root is None:
+        return None
+    data_root = os.path.abspath(os.path.expanduser(data_root))
+    if not os.path.isdir(data_root):
+        raise DatasetError(f"data root {data_root} (from {where}) is not a folder")
+    return data_root
+
+
+def scene_layout(folder: str) -> str | None:
+    """"blender", "llff" or None, from the files in ``folder``."""
+    if os.path.isfile(os.path.join(folder, "transforms_train.json")):
+        return "blender"
+    if os.path.isfile(os.path.join(folder, "poses_bounds.npy")):
+        return "llff"
+    return None
+
+
+def find_dataset(name: str, data_root: str | None) -> tuple[str, str] | None:
+    """(folder, layout) of dataset scene ``name`` under ``data_root``, or None."""
+    if not data_root:
+        return None
+    for sub in _SUBDIRS:
+        folder = os.path.join(data_root, sub, name)
+        layout = scene_layout(folder)
+        if layout:
+            return folder, layout
+    return None
+
+
+def dataset_scenes(data_root: str | None) -> dict[str, tuple[str, str]]:
+    """Name -> (folder, layout) of every dataset scene under ``data_root`` (first match wins)."""
+    found: dict[str, tuple[str, str]] = {}
+    if not data_root:
+        return found
+    for sub in _SUBDIRS:
+        parent = os.path.join(data_root, sub)
+        try:
+            entries = sorted(os.listdir(parent))
+        except OSError:
+            continue
+        for entry in entries:
+            folder = os.path.join(parent, entry)
+            layout = scene_layout(folder) if os.path.isdir(folder) else None
+            if layout and entry not in found:
+                found[entry] = (folder, layout)
+    return found
+
+
+def list_scenes(data_root: str | None = None) -> tuple[list[str], list[str]]:
+    """(built-in scene names, dataset scene names under the data root)."""
+    from warpnerf.data.builtin import builtin_scenes
+
+    return list(builtin_scenes()), sorted(dataset_scenes(data_root_from(data_root)))
+
+
+def load_scene(
+    name: str,
+    data_root: str | None = None,
+    downscale: int = 1,
+    splits: tuple[str, ...] = ("train", "val", "test"),
+    white_background: bool = True,
+    builtin_resolution: int | None = None,
+    cache_dir: str | None = None,
+    llff_factor: int = 8,
+    llff_holdout: int = 8,
+    progress: bool = True,
+) -> Scene:
+    """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
+
+    Args:
+        name: scene name, e.g. "lego", "fern" or "chair".
+        data_root: folder to search (default ``$WARPNERF_DATA``); see the module docstring.
+        downscale: integer image downscale (all layouts).
+        splits, white_background: Blender layouts (datasets and built-ins).
+        builtin_resolution, cache_dir, progress: built-in scenes only (image side in pixels,
+            default warpnerf.data.builtin.DEFAULT_RESOLUTION; cache folder; tqdm bar).
+        llff_factor, llff_holdout: LLFF only (``images_<factor>``; every n-th view is a test view).
+
+    Raises:
+        DatasetError: unknown name (the message lists what exists) or any loader error.
+    """
+    from warpnerf.data.builtin import builtin_scenes, load_builtin
+
+    root = data_root_from(data_root)
+    hit = find_dataset(name, root)
+    if hit:
+        folder, layout = hit
+        if layout == "blender":
+            from warpnerf.data.blender import load_blender
+
+            return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
+        from warpnerf.data.llff import load_llff
+
+        return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)
+    if name in builtin_scenes():
+        return load_builtin(
+            name,
+            resolution=builtin_resolution,
+            cache_dir=cache_dir,
+            downscale=downscale,
+            splits=splits,
+            white_background=white_background,
+            progress=progress,
+        )
+    datasets = sorted(dataset_scenes(root))
+    where = (
+        f"dataset scenes under {root}: {', '.join(datasets) if datasets else 'none'}"
+        if root
+        else f"no data root (pass --data-root or set {DATA_ENV} for NeRF-synthetic/LLFF scenes)"
+    )
+    raise DatasetError(f"unknown scene '{name}'; built-in scenes: {', '.join(builtin_scenes())}; {where}")
+
+
+def describe_scenes(data_root: str | None = None, cache_dir: str | None = None) -> str:
+    """Text for ``warpnerf scenes``: built-in scenes (with cached resolutions) and dataset scenes."""
+    from warpnerf.data.builtin import GENERATOR_VERSION, builtin_scenes, cache_root
+
+    cache = cache_root(cache_dir)
+    try:
+        cached_entries = os.listdir(cache)
+    except OSError:
+        cached_entries = []
+    lines = [f"Built-in scenes (rendered on first use, cached in {cache}):"]
+    builtins = builtin_scenes()
+    width = max(len(n) for n in builtins)
+    for name, desc in builtins.items():
+        # Folder names: <name>_<res>px_g<version>[_n...]; only finished, current-version ones count.
+        suffix = f"px_g{GENERATOR_VERSION}"
+        res = sorted(
+            {
+                e[len(name) + 1 :].split(suffix)[0]
+                for e in cached_entries
+                if e.startswith(name + "_") and suffix in e and os.path.isfile(os.path.join(cache, e, ".complete"))
+            },
+            key=lambda r: int(r) if r.isdigit() else 0,
+        )
+        cached = f"  [cached: {', '.join(r + 'px' for r in res)}]" if res else ""
+        lines.append(f"  {name:<{width}}  {desc}{cached}")
+    try:
+        root = data_root_from(data_root)
+    except DatasetError as exc:
+        lines.append(f"Dataset scenes: {exc}")
+        return "\n".join(lines)
+    if root is None:
+        lines.append(f"Dataset scenes: no data root (pass --data-root or set {DATA_ENV}).")
+        return "\n".join(lines)
+    found = dataset_scenes(root)
+    lines.append(f"Dataset scenes under {root}:" if found else f"Dataset scenes under {root}: none found")
+    width = max((len(n) for n in found), default=0)
+    for name, (folder, layout) in sorted(found.items()):
+        shadow = "  (overrides the built-in scene)" if name in builtins else ""
+        lines.append(f"  {name:<{width}}  {layout:<7}  {folder}{shadow}")
+    return "\n".join(lines)
