@@ -1,4 +1,8 @@
 import os
+import sys
+
+# tests import helpers (tiny_scene) from this folder
+sys.path.insert(0, os.path.dirname(__file__))
 
 import pytest
 

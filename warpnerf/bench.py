@@ -133,3 +133,90 @@ def format_encoding(res: dict) -> str:
         )
     lines.append(f"fwd+bwd incl. d/dx (uniform): {res['warp_fwdbwd_xgrad_pts_s'] / 1e6:.2f} M points/s")
     return "\n".join(lines)
+
+
+def _twin_ops():
+    """Context manager that swaps every Warp op used by a training step for its torch twin."""
+    import contextlib
+
+    from . import encoders, renderer
+    from .ops.reference import composite as twin_composite
+    from .ops.reference import hashgrid as twin_hashgrid
+    from .ops.reference import raymarch as twin_raymarch
+
+    @contextlib.contextmanager
+    def swap():
+        saved = (encoders.hashgrid_encode, renderer.march_rays, renderer.composite_rays)
+        encoders.hashgrid_encode = twin_hashgrid.hashgrid_encode
+        renderer.march_rays = twin_raymarch.march_rays
+        renderer.composite_rays = twin_composite.composite_rays
+        try:
+            yield
+        finally:
+            encoders.hashgrid_encode, renderer.march_rays, renderer.composite_rays = saved
+
+    return swap()
+
+
+def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", data_root: str | None = None,
+               torch_repeats: int = 2) -> dict:
+    """Training-step throughput on a standard batch.
+
+    Trains the ``full`` preset for ``warmup_steps`` steps on lego (when ``data_root`` has it) or
+    on the built-in chair, so the occupancy grid is realistic, then times ``repeats`` steps with
+    the Warp ops and ``torch_repeats`` steps with every op replaced by its pure-torch twin (same
+    state, same batch size). Reports samples/s and iterations/s of both and their ratio.
+    """
+    from .config import build_config
+    from .run import load_scene_for
+    from .tasks import make_task
+    from .trainer import Trainer
+
+    scene_name = "lego" if data_root else "chair"
+    cfg = build_config("full", overrides=dict(scene=scene_name, data_root=data_root, iters=warmup_steps + 1000,
+                                              device=device))
+    wp_device = devmod.resolve_device(device)
+    scene = load_scene_for(cfg, progress=False)
+    trainer = Trainer(cfg, scene, make_task(cfg), wp_device)
+    for step in range(warmup_steps):
+        trainer.train_step(step)
+
+    def timed(n: int, start: int) -> tuple[float, float]:
+        samples, t0 = 0.0, time.perf_counter()
+        for k in range(n):
+            trainer.n_rays = rays
+            stats = trainer.train_step(start + k)
+            samples += stats["samples_per_ray"] * rays
+        return time.perf_counter() - t0, samples
+
+    rays = trainer.n_rays
+    # freeze the ray count so both backends see the same batch size
+    trainer.cfg.target_samples = 1 << 40
+    trainer.occupancy.update_every = 1 << 30  # no grid updates inside the timed steps
+    start = warmup_steps
+    warp_s, warp_samples = timed(repeats, start)
+    with _twin_ops():
+        torch_s, torch_samples = timed(torch_repeats, start + repeats)
+    return {
+        "benchmark": "step",
+        "scene": scene.name,
+        "scene_source": scene.source,
+        "device": wp_device,
+        "threads": devmod.num_threads(),
+        "rays_per_step": rays,
+        "warp_iters_s": repeats / warp_s,
+        "warp_samples_s": warp_samples / warp_s,
+        "torch_iters_s": torch_repeats / torch_s,
+        "torch_samples_s": torch_samples / torch_s,
+        "ratio": (torch_s / torch_repeats) / (warp_s / repeats),
+        "samples_per_step": warp_samples / repeats,
+        "occupied_fraction": trainer.occupancy.occupied_fraction(),
+    }
+
+
+def format_step(res: dict) -> str:
+    return (f"training step on {res['scene']} ({res['scene_source']}), {res['rays_per_step']} rays, "
+            f"{res['samples_per_step']:.0f} samples/step, device={res['device']}, threads={res['threads']}\n"
+            f"warp : {res['warp_iters_s']:.2f} it/s, {res['warp_samples_s'] / 1e6:.2f} M samples/s\n"
+            f"torch: {res['torch_iters_s']:.3f} it/s, {res['torch_samples_s'] / 1e6:.3f} M samples/s\n"
+            f"ratio (torch time / warp time): {res['ratio']:.1f}x")

@@ -1,0 +1,89 @@
+"""The command line: errors are one line with exit code 2, no traceback; help works without CUDA."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from warpnerf.cli import main
+
+
+def run_cli(*args, env=None):
+    proc = subprocess.run([sys.executable, "-m", "warpnerf.cli", *args], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, timeout=300)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def test_help_lists_subcommands():
+    code, out, _ = run_cli("--help")
+    assert code == 0
+    for cmd in ("train", "eval", "bench", "scenes", "table"):
+        assert cmd in out
+
+
+def test_unknown_scene_is_one_line_error(tmp_path):
+    code, out, err = run_cli("train", "--scene", "nosuchscene", "--data-root", str(tmp_path), "--iters", "1")
+    assert code == 2
+    assert "Traceback" not in err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("warpnerf: error")]
+    assert len(lines) == 1 and "nosuchscene" in lines[0] and "chair" in lines[0]
+
+
+def test_unknown_config_key_is_one_line_error(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("iters = 5\nlearning_rate = 3\n")
+    assert main(["train", "--config", str(cfg)]) == 2
+
+
+def test_missing_run_folder_is_an_error(tmp_path, capsys):
+    assert main(["eval", "--run", str(tmp_path / "nope")]) == 2
+    assert "config.toml" in capsys.readouterr().err
+
+
+def test_bad_device_is_an_error(capsys):
+    assert main(["bench", "encoding", "--device", "tpu"]) == 2
+    assert "unknown device" in capsys.readouterr().err
+
+
+def test_bench_encoding_json_is_measured():
+    code, out, err = run_cli("bench", "encoding", "--n", "2048", "--levels", "4", "--log2-table-size", "12",
+                             "--repeats", "1", "--json")
+    assert code == 0, err
+    res = json.loads(out.strip().splitlines()[-1])
+    for key in ("warp_fwd_pts_s", "warp_fwdbwd_pts_s", "torch_fwd_pts_s", "torch_fwdbwd_pts_s", "ratio_fwd",
+                "ratio_fwdbwd", "threads", "device"):
+        assert key in res
+    assert res["warp_fwd_pts_s"] > 0 and res["device"] == "cpu"
+    assert set(res["cases"]) == {"uniform", "rays", "g2fr_first4"}
+
+
+def test_scenes_lists_builtins():
+    code, out, _ = run_cli("scenes")
+    assert code == 0
+    for name in ("chair", "lamp", "vase"):
+        assert name in out
+
+
+def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
+    """`warpnerf train --scene chair --task fewshot`, shrunk: generation, training, eval, video, metrics."""
+    out = tmp_path / "run"
+    code, stdout, err = run_cli(
+        "train", "--scene", "chair", "--task", "fewshot", "--builtin-resolution", "48", "--iters", "30",
+        "--eval-max-views", "2", "--video-frames", "3", "--out", str(out), "--quiet",
+        env={"WARPNERF_CACHE": str(tmp_path / "cache"), "WARPNERF_DATA": str(tmp_path)},  # a data root without the scene
+    )
+    assert code == 0, err[-2000:]
+    assert "from builtin" in stdout
+    m = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "iters", "train_seconds", "n_train_views", "scene", "scene_source", "task", "model",
+                "g2fr", "device", "seed"):
+        assert key in m, key
+    assert m["scene_source"] == "builtin" and m["n_train_views"] == 10 and m["g2fr"] is True and m["iters"] == 30
+    assert m["psnr"] > 8.0  # 30 steps: far from converged, but not garbage
+    assert (out / "turntable.gif").exists() and (out / "config.toml").exists()
+    assert len(list((out / "renders").glob("test_*.png"))) == 4  # 2 views x (rgb, depth)
+    code, stdout, err = run_cli("eval", "--run", str(out), "--quiet", env={"WARPNERF_CACHE": str(tmp_path / "cache")})
+    assert code == 0, err[-2000:]
+    assert json.loads((out / "eval" / "metrics.json").read_text())["psnr"] == pytest.approx(m["psnr"], abs=1e-4)

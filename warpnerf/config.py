@@ -1,0 +1,163 @@
+"""Training configuration: one typed dataclass, presets in ``configs/*.toml``, CLI overrides.
+
+Precedence: dataclass defaults < task preset (``configs/<task>.toml``) < ``--config FILE`` <
+command-line flags. Unknown keys are an error that names the key and the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from dataclasses import dataclass, field, fields
+from typing import Any, Optional
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A bad configuration file or value (one line, names the key)."""
+
+
+@dataclass
+class TrainConfig:
+    # --- what to train ---
+    scene: str = "chair"  # built-in scene name, or a dataset scene under data_root
+    data_root: Optional[str] = None  # dataset folder; default: $WARPNERF_DATA
+    task: str = "full"  # full | fewshot | pose
+    model: str = "ngp"  # field model (only the Instant-NGP hash-grid field is implemented)
+    downscale: int = 1  # integer image downscale applied at load time
+    builtin_resolution: Optional[int] = None  # image size of built-in scenes (None: generator default)
+    # --- optimisation ---
+    iters: int = 2000  # training steps
+    batch_rays: int = 4096  # rays per step at the start; adapted to keep target_samples
+    target_samples: int = 131072  # samples per step the ray count adapts to (instant-ngp style)
+    lr: float = 1e-2  # Adam learning rate of the hash table and the MLPs
+    lr_final_ratio: float = 0.1  # exponential decay of lr to lr * ratio at the last step
+    weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
+    # --- G²fR (paper eq. 15) ---
+    g2fr: bool = False  # mask grid levels coarse to fine
+    g2fr_beta: float = 0.4  # fraction of training over which levels are switched on
+    g2fr_mask: str = "cosine"  # cosine | binary
+    # --- hash grid and MLPs ---
+    levels: int = 16  # L
+    features: int = 2  # F per level
+    log2_table_size: int = 19  # T = 2^k
+    base_resolution: int = 16  # points per axis of the coarsest level
+    max_resolution: int = 2048  # points per axis of the finest level (over the scene box)
+    hidden: int = 64  # MLP width
+    geo_features: int = 15  # density-MLP features passed to the color MLP
+    # --- rendering ---
+    occ_resolution: int = 128  # occupancy grid cells per axis
+    occ_warmup: int = 256  # steps during which every cell is refreshed
+    occ_update_every: int = 16  # steps between occupancy updates
+    render_step: float = 0.0  # ray-marching step; 0 = box diagonal / 1024 (instant-ngp)
+    max_samples_per_ray: int = 1024
+    # --- tasks ---
+    n_views: int = 10  # fewshot: number of training views
+    views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids
+    pose_noise: Optional[float] = None  # pose: se(3) noise sigma (None: 0.15 synthetic, 0.01 real)
+    pose_noise_rot: Optional[float] = None  # pose: rotation sigma, overrides pose_noise
+    pose_noise_trans: Optional[float] = None  # pose: translation sigma, overrides pose_noise
+    pose_lr: float = 1e-3  # pose: Adam lr of the se(3) corrections
+    pose_lr_final: float = 1e-5  # pose: lr at the last step (exponential)
+    pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
+    # --- evaluation and output ---
+    eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
+    eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
+    video_frames: int = 40  # turntable frames (0 = no video)
+    out: str = ""  # run folder; default runs/<scene>_<task>[_g2fr]
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    threads: Optional[int] = None  # CPU threads for Warp launches
+    log_every: int = 50  # steps between progress-bar metric refreshes
+
+    def run_dir(self) -> str:
+        if self.out:
+            return self.out
+        return os.path.join("runs", f"{self.scene}_{self.task}{'_g2fr' if self.g2fr else ''}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _field_types() -> dict[str, Any]:
+    return {f.name: f for f in fields(TrainConfig)}
+
+
+def _coerce(name: str, value: Any, source: str) -> Any:
+    """Check a value from a file against the dataclass field type."""
+    f = _field_types()[name]
+    default = f.default
+    if value is None:
+        return None
+    kinds = {bool: bool, int: int, float: (int, float), str: str}
+    typ = type(default) if default is not None else None
+    ann = str(f.type)
+    if typ is None:  # Optional[...]: infer from the annotation text
+        typ = int if "int" in ann else float if "float" in ann else str
+    want = kinds.get(typ, typ)
+    if typ is int and isinstance(value, bool) or typ is float and isinstance(value, bool) or not isinstance(value, want):
+        raise ConfigError(f"{source}: key '{name}' must be {typ.__name__}, got {value!r}")
+    return float(value) if typ is float else value
+
+
+def load_toml(path: str) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: malformed TOML: {e}") from None
+    known = _field_types()
+    for key, value in data.items():
+        if key not in known:
+            raise ConfigError(f"{path}: unknown config key '{key}'")
+    return {k: _coerce(k, v, path) for k, v in data.items()}
+
+
+def preset_path(task: str) -> str:
+    """Path of the preset shipped for ``task`` (``configs/<task>.toml``)."""
+    from importlib import resources
+
+    return str(resources.files("warpnerf.configs").joinpath(f"{task}.toml"))
+
+
+def build_config(task: str, config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
+    """Defaults < task preset < ``config_file`` < ``overrides`` (only keys whose value is not None)."""
+    values: dict[str, Any] = {}
+    preset = preset_path(task)
+    if os.path.exists(preset):
+        values.update(load_toml(preset))
+    if config_file:
+        values.update(load_toml(config_file))
+    values["task"] = task
+    for k, v in (overrides or {}).items():
+        if k not in _field_types():
+            raise ConfigError(f"unknown config key '{k}'")
+        if v is not None:
+            values[k] = v
+    cfg = TrainConfig(**values)
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: TrainConfig) -> None:
+    if cfg.iters < 1:
+        raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
+    if cfg.batch_rays < 1 or cfg.target_samples < 1:
+        raise ConfigError("batch_rays and target_samples must be >= 1")
+    if cfg.g2fr_mask not in ("cosine", "binary"):
+        raise ConfigError(f"g2fr_mask must be cosine or binary, got '{cfg.g2fr_mask}'")
+    if not 0.0 < cfg.g2fr_beta <= 1.0:
+        raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
+    if cfg.model != "ngp":
+        raise ConfigError(f"unknown model '{cfg.model}': only 'ngp' is implemented")
+    if cfg.downscale < 1:
+        raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
+    if cfg.eval_every < 1:
+        raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")

@@ -1,0 +1,84 @@
+"""The Instant-NGP radiance field: hash grid (G²fR-masked) -> density MLP -> color MLP.
+
+Positions are world coordinates; the field maps its box to [0, 1]^3 for the grid.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .encoders import HashGridEncoder, SphericalHarmonicsEncoder
+from .ops.hashgrid import HashGridSpec
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp with its gradient clamped at exp(15), instant-ngp's density activation."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x)
+
+
+class NGPField(nn.Module):
+    """sigma(x), rgb(x, d) with a multi-resolution hash grid.
+
+    Args:
+        aabb: 6 floats, the box mapped to the grid's unit cube.
+        spec: hash-grid geometry.
+        hidden: MLP width; geo_features: density-MLP outputs fed to the color MLP.
+    """
+
+    def __init__(self, aabb, spec: HashGridSpec, hidden: int = 64, geo_features: int = 15,
+                 generator: torch.Generator | None = None):
+        super().__init__()
+        self.register_buffer("aabb_min", torch.tensor(aabb[:3], dtype=torch.float32), persistent=True)
+        self.register_buffer("aabb_size", torch.tensor(aabb[3:], dtype=torch.float32) - self.aabb_min, persistent=True)
+        self.encoder = HashGridEncoder(spec, generator=generator)
+        self.dir_encoder = SphericalHarmonicsEncoder()
+        self.density_net = nn.Sequential(
+            nn.Linear(spec.out_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1 + geo_features)
+        )
+        self.color_net = nn.Sequential(
+            nn.Linear(geo_features + self.dir_encoder.out_dim, hidden), nn.ReLU(inplace=True),
+            nn.Linear(hidden, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 3),
+        )
+
+    def to_unit(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.aabb_min) / self.aabb_size
+
+    def geometry(self, x: torch.Tensor, level_weights: torch.Tensor | None = None):
+        """(N, 3) world points -> density (N,) per unit length, geometry features (N, geo_features)."""
+        h = self.density_net(self.encoder(self.to_unit(x), level_weights))
+        return trunc_exp(h[:, 0]), h[:, 1:]
+
+    def density(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 3) world points -> (N,) density, per unit length."""
+        return self.geometry(x, level_weights)[0]
+
+    def color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """Geometry features (N, geo_features) and unit view directions (N, 3) -> rgb (N, 3) in [0, 1]."""
+        return torch.sigmoid(self.color_net(torch.cat([geo, self.dir_encoder(dirs)], dim=-1)))
+
+    def forward(self, x: torch.Tensor, dirs: torch.Tensor, level_weights: torch.Tensor | None = None):
+        """(N, 3) points and (N, 3) unit directions -> sigma (N,), rgb (N, 3) in [0, 1]."""
+        sigma, geo = self.geometry(x, level_weights)
+        return sigma, self.color(geo, dirs)
+
+    def param_groups(self, lr: float, weight_decay_mlp: float) -> list[dict]:
+        """Adam groups: the table without weight decay, the MLPs with a little (instant-ngp)."""
+        mlp = [p for n, p in self.named_parameters() if not n.startswith("encoder.")]
+        return [
+            {"params": [self.encoder.table], "lr": lr, "weight_decay": 0.0, "name": "grid"},
+            {"params": mlp, "lr": lr, "weight_decay": weight_decay_mlp, "name": "mlp"},
+        ]

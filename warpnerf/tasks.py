@@ -1,0 +1,216 @@
+"""Tasks decide which views train, how cameras are posed, and how a run is evaluated.
+
+A task is an object with a few hooks the :class:`warpnerf.trainer.Trainer` calls; the training
+loop itself never asks which task it runs.
+
+* ``full``    all training views, known poses;
+* ``fewshot`` N views chosen by a deterministic rule (or a named list), known poses;
+* ``pose``    all training views with BARF-style noisy poses, jointly optimised (DESIGN §5).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional
+
+import torch
+
+from .config import ConfigError, TrainConfig
+from .data.scene import Scene, Views
+
+if TYPE_CHECKING:
+    from .trainer import Trainer
+
+# FreeNeRF's 8 NeRF-synthetic training views (ids in transforms_train.json)
+NAMED_VIEW_LISTS = {"freenerf8": [26, 86, 2, 55, 75, 93, 16, 73]}
+
+
+class Task:
+    """Base task: every training view with its known pose."""
+
+    name = "full"
+
+    def __init__(self, cfg: TrainConfig):
+        self.cfg = cfg
+
+    def train_views(self, scene: Scene) -> Views:
+        return scene.train
+
+    def setup(self, trainer: "Trainer") -> None:
+        """Create task state (e.g. pose parameters) once the trainer exists."""
+
+    def camera_poses(self, trainer: "Trainer", idx: torch.Tensor) -> torch.Tensor:
+        """(B, 3, 4) c2w of training views ``idx`` (differentiable when poses are learned)."""
+        return trainer.train_c2w[idx]
+
+    def optimizer_step(self, trainer: "Trainer", step: int) -> None:
+        """Step task-owned optimisers after the loss backward."""
+
+    def after_step(self, trainer: "Trainer", step: int) -> dict:
+        """Extra progress values to log (small dict)."""
+        return {}
+
+    def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
+        """(N, 3, 4) poses to render the evaluation views from."""
+        return views.c2w.to(trainer.device)
+
+    def metrics(self, trainer: "Trainer") -> dict:
+        return {}
+
+    def artifacts(self, trainer: "Trainer", out_dir: str) -> None:
+        """Task plots and files written after evaluation."""
+
+
+class FullTask(Task):
+    name = "full"
+
+
+def farthest_view_order(c2w: torch.Tensor, n: int, start: int = 0) -> list[int]:
+    """Greedy farthest-point sampling of camera centres: start at view ``start``, then repeatedly
+    add the view farthest from all chosen ones. Deterministic and spreads views over the sphere."""
+    centres = c2w[:, :, 3].double()
+    chosen = [start]
+    dist = (centres - centres[start]).norm(dim=-1)
+    while len(chosen) < min(n, centres.shape[0]):
+        nxt = int(torch.argmax(dist))
+        chosen.append(nxt)
+        dist = torch.minimum(dist, (centres - centres[nxt]).norm(dim=-1))
+    return chosen
+
+
+class FewShotTask(Task):
+    """Train on ``n_views`` views: FPS over camera centres from view 0, or ``views`` (a named list
+    such as ``freenerf8``, or comma-separated ids of transforms_train.json)."""
+
+    name = "fewshot"
+
+    def selected_ids(self, views: Views) -> list[int]:
+        spec = self.cfg.views.strip()
+        if not spec:
+            if not 1 <= self.cfg.n_views <= len(views):
+                raise ConfigError(f"n_views must be in [1, {len(views)}], got {self.cfg.n_views}")
+            return [views.ids[i] for i in farthest_view_order(views.c2w, self.cfg.n_views)]
+        if spec in NAMED_VIEW_LISTS:
+            return list(NAMED_VIEW_LISTS[spec])
+        try:
+            return [int(s) for s in spec.split(",") if s.strip()]
+        except ValueError:
+            raise ConfigError(f"views must be one of {sorted(NAMED_VIEW_LISTS)} or comma-separated ids, got '{spec}'") from None
+
+    def train_views(self, scene: Scene) -> Views:
+        ids = self.selected_ids(scene.train)
+        pos = {vid: i for i, vid in enumerate(scene.train.ids)}
+        missing = [i for i in ids if i not in pos]
+        if missing:
+            raise ConfigError(f"views {missing} are not training views of '{scene.name}' (ids 0..{len(scene.train) - 1})")
+        return scene.train.subset([pos[i] for i in ids])
+
+
+class PoseTask(Task):
+    """Joint camera-pose optimisation from BARF-perturbed poses (DESIGN §5)."""
+
+    name = "pose"
+
+    def __init__(self, cfg: TrainConfig):
+        super().__init__(cfg)
+        self.history: dict[str, list] = {"step": [], "rot_err_deg": [], "trans_err_x100": []}
+        self.initial: dict = {}
+        self.final: dict = {}
+
+    def noise_sigmas(self, scene: Scene) -> tuple[float, float]:
+        default = 0.01 if scene.kind == "llff" else 0.15
+        base = self.cfg.pose_noise if self.cfg.pose_noise is not None else default
+        rot = self.cfg.pose_noise_rot if self.cfg.pose_noise_rot is not None else base
+        trans = self.cfg.pose_noise_trans if self.cfg.pose_noise_trans is not None else base
+        return rot, trans
+
+    def setup(self, trainer: "Trainer") -> None:
+        from .cameras import PoseCorrection, evaluate_poses, perturb_poses
+
+        gt = trainer.train_c2w
+        rot, trans = self.noise_sigmas(trainer.scene)
+        # its own generator: the same seed gives the same noise with and without G²fR
+        gen = torch.Generator().manual_seed(self.cfg.seed + 1)
+        self.gt_c2w = gt.detach().clone()
+        self.noisy_c2w = perturb_poses(gt.cpu(), rot, trans, generator=gen).to(trainer.device)
+        self.sigmas = (rot, trans)
+        self.correction = PoseCorrection(gt.shape[0]).to(trainer.device)
+        self.optimizer = torch.optim.Adam(self.correction.parameters(), lr=self.cfg.pose_lr)
+        init = evaluate_poses(self.noisy_c2w, self.gt_c2w)
+        self.initial = {"rot_err_deg": init["rot_err_deg"], "trans_err_x100": init["trans_err_x100"]}
+        self._record(0)
+
+    def current_c2w(self) -> torch.Tensor:
+        return self.correction(self.noisy_c2w)
+
+    def camera_poses(self, trainer: "Trainer", idx: torch.Tensor) -> torch.Tensor:
+        return self.correction(self.noisy_c2w[idx], idx)
+
+    def optimizer_step(self, trainer: "Trainer", step: int) -> None:
+        frac = step / max(self.cfg.iters - 1, 1)
+        lr = self.cfg.pose_lr * (self.cfg.pose_lr_final / self.cfg.pose_lr) ** frac
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def _record(self, step: int) -> dict:
+        from .cameras import evaluate_poses
+
+        with torch.no_grad():
+            ev = evaluate_poses(self.current_c2w(), self.gt_c2w)
+        self.history["step"].append(step)
+        self.history["rot_err_deg"].append(ev["rot_err_deg"])
+        self.history["trans_err_x100"].append(ev["trans_err_x100"])
+        return ev
+
+    def after_step(self, trainer: "Trainer", step: int) -> dict:
+        if (step + 1) % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
+            ev = self._record(step + 1)
+            return {"rot": f"{ev['rot_err_deg']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
+        return {}
+
+    def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
+        """Test poses mapped into the optimised frame by the training-camera Sim(3) alignment, then
+        refined photometrically (``pose_refine_steps`` Adam steps per view, field frozen)."""
+        from .cameras import evaluate_poses, map_gt_poses_to_estimate_frame
+
+        ev = evaluate_poses(self.current_c2w(), self.gt_c2w)
+        self.final = ev
+        mapped = map_gt_poses_to_estimate_frame(views.c2w.to(trainer.device).double(), ev["sim3"]).float()
+        if self.cfg.pose_refine_steps <= 0:
+            return mapped
+        return trainer.refine_poses(mapped, views)
+
+    def metrics(self, trainer: "Trainer") -> dict:
+        ev = self.final
+        return {
+            "rot_err_deg": ev["rot_err_deg"],
+            "trans_err_x100": ev["trans_err_x100"],
+            "rot_err_deg_per_view": ev["rot_err_deg_per_view"],
+            "trans_err_x100_per_view": ev["trans_err_x100_per_view"],
+            "initial_rot_err_deg": self.initial["rot_err_deg"],
+            "initial_trans_err_x100": self.initial["trans_err_x100"],
+            "pose_noise_rot": self.sigmas[0],
+            "pose_noise_trans": self.sigmas[1],
+            "pose_error_history": self.history,
+        }
+
+    def artifacts(self, trainer: "Trainer", out_dir: str) -> None:
+        import os
+
+        from . import plots
+
+        plots.plot_cameras(os.path.join(out_dir, "cameras.png"), self.gt_c2w.cpu(), self.noisy_c2w.cpu(),
+                           self.final["c2w_aligned"].cpu(), title=f"{trainer.scene.name}: camera poses")
+        plots.plot_pose_error_curve(os.path.join(out_dir, "pose_error.png"), self.history["step"],
+                                    self.history["rot_err_deg"], self.history["trans_err_x100"])
+
+
+TASKS = {cls.name: cls for cls in (FullTask, FewShotTask, PoseTask)}
+
+
+def make_task(cfg: TrainConfig) -> Task:
+    try:
+        return TASKS[cfg.task](cfg)
+    except KeyError:
+        raise ConfigError(f"unknown task '{cfg.task}': expected one of {sorted(TASKS)}") from None
