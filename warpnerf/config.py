@@ -54,7 +54,8 @@ class TrainConfig:
     occ_resolution: int = 128  # occupancy grid cells per axis
     occ_warmup: int = 256  # steps during which every cell is refreshed
     occ_update_every: int = 16  # steps between occupancy updates
-    render_step: float = 0.0  # ray-marching step; 0 = box diagonal / 1024 (instant-ngp)
+    march_steps: int = 1024  # ray-marching steps across the box diagonal (instant-ngp: 1024)
+    render_step: float = 0.0  # explicit ray-marching step in scene units; 0 = diagonal / march_steps
     max_samples_per_ray: int = 1024
     # --- tasks ---
     n_views: int = 10  # fewshot: number of training views

@@ -138,7 +138,7 @@ class Renderer:
         }
 
 
-def default_step(aabb) -> float:
-    """instant-ngp's marching step: the box diagonal over 1024."""
+def default_step(aabb, steps_per_diagonal: int = 1024) -> float:
+    """Marching step: the box diagonal over ``steps_per_diagonal`` (instant-ngp: 1024)."""
     size = [aabb[i + 3] - aabb[i] for i in range(3)]
-    return math.sqrt(sum(s * s for s in size)) / 1024.0
+    return math.sqrt(sum(s * s for s in size)) / steps_per_diagonal

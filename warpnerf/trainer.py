@@ -58,7 +58,7 @@ class Trainer:
             f, w, h = views.focal, views.width, views.height
             ray_transform = lambda o, d: ndc_rays(o, d, f, w, h, near=1.0)  # noqa: E731
         far = math.inf if scene.ndc else scene.far
-        self.renderer = Renderer(self.field, self.occupancy, scene.near, far, cfg.render_step or default_step(scene.aabb),
+        self.renderer = Renderer(self.field, self.occupancy, scene.near, far, cfg.render_step or default_step(scene.aabb, cfg.march_steps),
                                  scene.background, cfg.max_samples_per_ray, ray_transform)
         self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp), cfg.lr)
         self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
@@ -132,7 +132,7 @@ class Trainer:
 
     # --- evaluation -------------------------------------------------------------------------
 
-    def refine_poses(self, c2w: torch.Tensor, views: Views, rays_per_step: int = 2048) -> torch.Tensor:
+    def refine_poses(self, c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
         """Photometric refinement of (N, 3, 4) poses against ``views``' images with the field frozen
         (BARF's test-time pose optimisation). Returns refined (N, 3, 4) poses."""
         from .cameras import PoseCorrection
