@@ -92,8 +92,9 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     from . import plots
 
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
-                               {"step": trainer.history["step"], "loss": trainer.history["loss"],
-                                "psnr": trainer.history["psnr"]}, title=f"{scene.name} / {cfg.task}")
+                               {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
+                                "training batch PSNR (dB)": trainer.history["psnr"]},
+                               title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
         trainer.render_turntable(os.path.join(out_dir, "turntable.gif"), cfg.video_frames, progress)

@@ -55,6 +55,19 @@ def format_table(task: str, rows: dict) -> str:
     return "\n".join(lines)
 
 
+def plot_pose_comparison(path: str, scene: str, arms: dict) -> None:
+    """Rotation and translation error over iterations, with and without G²fR, in one figure."""
+    from . import plots
+
+    curves = {}
+    for arm, label in (("w/", "w/ G2fR"), ("w/o", "w/o G2fR")):
+        hist = arms.get(arm, {}).get("pose_error_history")
+        if hist:
+            curves[label] = (hist["step"], hist["rot_err_deg"], hist["trans_err_x100"])
+    if curves:
+        plots.plot_pose_error_curve(path, curves, title=f"{scene}: pose error during training")
+
+
 def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = None, iters: Optional[int] = None,
               out: str = "runs/table", seed: int = 0, device: str = "auto") -> str:
     sections = []
@@ -68,6 +81,8 @@ def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = No
                 cfg = build_config(task, overrides=dict(scene=scene, data_root=data_root, iters=iters, g2fr=g2fr,
                                                         seed=seed, out=run_dir, device=device, video_frames=0))
                 rows[scene][arm] = run_training(cfg)
+            if task == "pose":
+                plot_pose_comparison(os.path.join(out, f"{scene}_pose_error.png"), scene, rows[scene])
         title = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)",
                  "fewshot": "Few-shot reconstruction (cf. paper Tab. 3)"}.get(task, f"Task {task}")
         iters_used = {arm: r.get("iters") for s in rows.values() for arm, r in s.items()}

@@ -176,7 +176,8 @@ class Trainer:
         views = self.eval_views()
         poses = self.task.eval_poses(self, views)
         weights = self.level_weights(self.cfg.iters)
-        psnrs, ssims, lpips, secs = [], [], [], []
+        psnrs, ssims, lpips, secs, depth_errs = [], [], [], [], []
+        z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
         if out_dir:
             os.makedirs(os.path.join(out_dir, "renders"), exist_ok=True)
         for k in tqdm(range(len(views)), desc="evaluate", disable=not progress, dynamic_ncols=True):
@@ -188,6 +189,11 @@ class Trainer:
             psnrs.append(M.psnr(pred, gt))
             ssims.append(M.ssim(pred, gt))
             lpips.append(M.lpips_or_none(pred, gt))
+            if views.depth is not None:
+                # ground truth is camera-z depth (0 = background); ours is distance along the unit ray
+                fg = views.depth[k] > 0
+                pred_z = img["depth"].cpu() * z_scale
+                depth_errs.append(float((pred_z[fg] - views.depth[k][fg]).abs().mean()) if fg.any() else 0.0)
             if out_dir:
                 save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}.png"),
                          torch.cat([pred, gt], dim=1))
@@ -200,6 +206,8 @@ class Trainer:
             "psnr_per_view": psnrs,
             "eval_view_ids": views.ids,
             "render_seconds_per_view": float(np.mean(secs)),
+            # mean |depth error| over ground-truth foreground pixels, scene units (built-in scenes)
+            "depth_mae": float(np.mean(depth_errs)) if depth_errs else None,
             "eval_resolution": [views.height, views.width],
         }
 
@@ -233,6 +241,12 @@ class Trainer:
         self.occupancy.bitfield.copy_(state["occ_bitfield"])
         if "pose_correction" in state and hasattr(self.task, "correction"):
             self.task.correction.load_state_dict(state["pose_correction"])
+
+
+def camera_z_scale(height: int, width: int, focal: float, cx: float, cy: float) -> torch.Tensor:
+    """(H, W) factor turning distance along a pixel's unit ray into camera-z depth."""
+    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    return 1.0 / torch.sqrt(((u - cx) / focal) ** 2 + ((v - cy) / focal) ** 2 + 1.0)
 
 
 def save_png(path: str, img: torch.Tensor) -> None:
