@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from .device import init_warp
-from .ops.raymarch import aabb_floats, as_warp
+from .ops.launch import aabb_floats, as_warp
 
 __all__ = ["OccupancyGrid"]
 

@@ -1,7 +1,7 @@
 """``composite_rays``: volume rendering of packed samples (Warp forward + hand-written backward).
 
 One thread per ray, in both directions; every output element belongs to one ray, so on CPU the
-rays are split into fixed chunks on the thread pool (:func:`warpnerf.ops.raymarch.launch_over_rays`)
+rays are split into fixed chunks on the thread pool (:func:`warpnerf.ops.launch.launch_over_rays`)
 and the result does not depend on the thread count. The math and the gradient derivation are
 in ``kernels/composite.py``.
 """
@@ -13,7 +13,7 @@ from typing import Sequence, Union
 import torch
 
 from ..device import init_warp
-from .raymarch import as_warp, launch_over_rays
+from .launch import as_warp, launch_over_rays
 
 __all__ = ["composite_rays"]
 

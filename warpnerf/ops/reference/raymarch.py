@@ -11,7 +11,8 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..raymarch import PackedSamples, aabb_floats
+from ..launch import aabb_floats
+from ..raymarch import PackedSamples
 
 __all__ = ["march_rays"]
 

@@ -1,0 +1,57 @@
+"""Launch helpers shared by the per-ray ops (march, composite) and the occupancy grid.
+
+Torch tensors become zero-copy Warp views that never touch autograd, and per-ray kernels are
+cut into fixed CPU chunks (see :mod:`warpnerf.device`) so results never depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..device import init_warp, run_chunks, split_range
+
+# fixed number of CPU ray chunks: rays differ a lot in cost (box misses, empty space), and
+# four chunks balance two threads better than two; the launch overhead (~15 us each) is negligible
+_CPU_RAY_CHUNKS = 4
+
+
+def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) -> None:
+    """Launch a per-ray kernel whose first parameter is ``first_ray`` over ``num_rays`` rays.
+
+    The kernel must write only per-ray (or per-sample-of-ray) outputs: on CPU the rays are cut
+    into ``_CPU_RAY_CHUNKS`` fixed chunks run on the thread pool; on CUDA it is one launch on
+    torch's current stream.
+    """
+    wp = init_warp()
+    if device.type == "cuda":
+        wp_device = wp.device_from_torch(device)
+        wp.launch(kernel, dim=num_rays, inputs=[0, *inputs], device=wp_device, stream=wp.stream_from_torch(device))
+        return
+
+    def launch(lo: int, hi: int):
+        wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device="cpu")
+
+    run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
+
+
+def as_warp(t: torch.Tensor, dtype=None):
+    """Zero-copy Warp view of ``t`` (copied first if not contiguous), never linked to autograd.
+
+    ``wp.from_torch`` would otherwise allocate ``t.grad`` for tensors that require grad. Output
+    buffers must be contiguous, or the kernel would write into the copy.
+    """
+    wp = init_warp()
+    return wp.from_torch(t.detach().contiguous(), dtype=dtype, requires_grad=False)
+
+
+def aabb_floats(aabb) -> tuple[list[float], list[float]]:
+    """(min corner, max corner) of a 6-float box; ValueError unless min < max on every axis."""
+    if isinstance(aabb, torch.Tensor):
+        aabb = aabb.detach().cpu().reshape(-1).tolist()
+    vals = [float(v) for v in aabb]
+    if len(vals) != 6:
+        raise ValueError(f"aabb must have 6 values (xmin, ymin, zmin, xmax, ymax, zmax), got {len(vals)}")
+    lo, hi = vals[:3], vals[3:]
+    if not all(l < h for l, h in zip(lo, hi)):
+        raise ValueError(f"aabb must have min < max on every axis, got {tuple(vals)}")
+    return lo, hi
