@@ -181,18 +181,18 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
     for step in range(warmup_steps):
         trainer.train_step(step)
 
+    rays = trainer.n_rays
+    trainer.occupancy.update_every = 1 << 30  # no grid updates inside the timed steps
+
     def timed(n: int, start: int) -> tuple[float, float]:
         samples, t0 = 0.0, time.perf_counter()
         for k in range(n):
+            # train_step adapts the ray count; reset it so both backends see the same batch size
             trainer.n_rays = rays
             stats = trainer.train_step(start + k)
             samples += stats["samples_per_ray"] * rays
         return time.perf_counter() - t0, samples
 
-    rays = trainer.n_rays
-    # freeze the ray count so both backends see the same batch size
-    trainer.cfg.target_samples = 1 << 40
-    trainer.occupancy.update_every = 1 << 30  # no grid updates inside the timed steps
     start = warmup_steps
     warp_s, warp_samples = timed(repeats, start)
     with _twin_ops():

@@ -85,8 +85,7 @@ class Renderer:
         near = self.near
         if self.ray_transform is not None:
             o, d = self.ray_transform(o, d)
-            norm = d.norm(dim=-1, keepdim=True)
-            d = d / norm
+            d = torch.nn.functional.normalize(d, dim=-1)
             near = 0.0
         with torch.no_grad():
             packed = march_rays(o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb,

@@ -177,7 +177,8 @@ class Trainer:
         poses = self.task.eval_poses(self, views)
         weights = self.level_weights(self.cfg.iters)
         psnrs, ssims, lpips, secs, depth_errs = [], [], [], [], []
-        z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
+        if views.depth is not None:
+            z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
         if out_dir:
             os.makedirs(os.path.join(out_dir, "renders"), exist_ok=True)
         for k in tqdm(range(len(views)), desc="evaluate", disable=not progress, dynamic_ncols=True):
