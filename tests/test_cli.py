@@ -87,3 +87,12 @@ def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
     code, stdout, err = run_cli("eval", "--run", str(out), "--quiet", env={"WARPNERF_CACHE": str(tmp_path / "cache")})
     assert code == 0, err[-2000:]
     assert json.loads((out / "eval" / "metrics.json").read_text())["psnr"] == pytest.approx(m["psnr"], abs=1e-4)
+    # `table --reuse` reads a finished run only when its configuration is identical
+    from warpnerf.config import build_config, load_toml
+    from warpnerf.run import finished_metrics
+
+    values = load_toml(str(out / "config.toml"))
+    cfg = build_config(values.pop("task"), overrides=values)
+    assert finished_metrics(cfg)["psnr"] == pytest.approx(m["psnr"])
+    cfg.iters += 1
+    assert finished_metrics(cfg) is None

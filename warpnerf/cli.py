@@ -119,7 +119,8 @@ def cmd_table(args) -> int:
 
     _setup_device(args)
     text = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), data_root=args.data_root,
-                     iters=args.iters, out=args.out, seed=args.seed, device=args.device)
+                     iters=args.iters, out=args.out, seed=args.seed, device=args.device, config_file=args.config,
+                     reuse=args.reuse)
     print(text)
     return 0
 
@@ -157,6 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--iters", type=int, default=None, help="override the presets' iterations")
     tb.add_argument("--out", default="runs/table")
     tb.add_argument("--seed", type=int, default=0)
+    tb.add_argument("--config", default=None, help="TOML file overriding the task presets (both arms)")
+    tb.add_argument("--reuse", action="store_true",
+                    help="read run folders that already hold a finished run of the same configuration")
     _add_device(tb)
     tb.set_defaults(func=cmd_table)
 

@@ -13,8 +13,10 @@ Run folder layout::
 
 from __future__ import annotations
 
+import json
 import os
 import time
+from typing import Optional
 
 import torch
 
@@ -31,7 +33,8 @@ def load_scene_for(cfg: TrainConfig, progress: bool = True):
                       builtin_resolution=cfg.builtin_resolution, progress=progress)
 
 
-def write_config(path: str, cfg: TrainConfig) -> None:
+def config_text(cfg: TrainConfig) -> str:
+    """The resolved configuration as TOML (what ``config.toml`` of a run folder holds)."""
     lines = []
     for key, value in cfg.to_dict().items():
         if value is None:
@@ -42,8 +45,27 @@ def write_config(path: str, cfg: TrainConfig) -> None:
             lines.append(f"{key} = {value!r}")
         else:
             lines.append(f'{key} = "{value}"')
+    return "\n".join(lines) + "\n"
+
+
+def write_config(path: str, cfg: TrainConfig) -> None:
     with open(path, "w") as fh:
-        fh.write("\n".join(lines) + "\n")
+        fh.write(config_text(cfg))
+
+
+def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
+    """metrics.json of ``cfg.run_dir()`` if that folder holds a finished run of exactly ``cfg``."""
+    out_dir = cfg.run_dir()
+    cfg_path, metrics_path = os.path.join(out_dir, "config.toml"), os.path.join(out_dir, "metrics.json")
+    if not (os.path.exists(cfg_path) and os.path.exists(metrics_path)):
+        return None
+    with open(cfg_path) as fh:
+        if fh.read() != config_text(cfg):
+            return None
+    with open(metrics_path) as fh:
+        metrics = json.load(fh)
+    # metrics.json is written twice; total_seconds marks the second (complete) write
+    return metrics if "total_seconds" in metrics else None
 
 
 def run_training(cfg: TrainConfig, progress: bool = True) -> dict:

@@ -12,7 +12,7 @@ import os
 from typing import Optional
 
 from .config import build_config
-from .run import run_training
+from .run import finished_metrics, run_training
 
 # The paper's NGP numbers (Tab. 1 pose, lego; Tab. 3 few-shot). w/ = with G²fR, w/o = without.
 PAPER = {
@@ -69,7 +69,13 @@ def plot_pose_comparison(path: str, scene: str, arms: dict) -> None:
 
 
 def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = None, iters: Optional[int] = None,
-              out: str = "runs/table", seed: int = 0, device: str = "auto") -> str:
+              out: str = "runs/table", seed: int = 0, device: str = "auto", config_file: Optional[str] = None,
+              reuse: bool = False) -> str:
+    """Train both arms of every (scene, task) and write ``<out>/table.md``.
+
+    ``config_file`` overrides the task presets for both arms. With ``reuse`` a run folder that
+    already holds a finished run of the identical configuration is read instead of retrained.
+    """
     sections = []
     for task in tasks:
         rows: dict = {}
@@ -78,9 +84,13 @@ def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = No
             for arm, g2fr in (("w/", True), ("w/o", False)):
                 run_dir = os.path.join(out, f"{scene}_{task}_{'g2fr' if g2fr else 'nog2fr'}")
                 # no turntable: the table needs metrics only, and a 400x400 video costs minutes on a CPU
-                cfg = build_config(task, overrides=dict(scene=scene, data_root=data_root, iters=iters, g2fr=g2fr,
-                                                        seed=seed, out=run_dir, device=device, video_frames=0))
-                rows[scene][arm] = run_training(cfg)
+                cfg = build_config(task, config_file, overrides=dict(scene=scene, data_root=data_root, iters=iters,
+                                                                     g2fr=g2fr, seed=seed, out=run_dir, device=device,
+                                                                     video_frames=0))
+                done = finished_metrics(cfg) if reuse else None
+                if done is not None:
+                    print(f"reusing the finished run in {run_dir}")
+                rows[scene][arm] = done if done is not None else run_training(cfg)
             if task == "pose":
                 plot_pose_comparison(os.path.join(out, f"{scene}_pose_error.png"), scene, rows[scene])
         title = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)",

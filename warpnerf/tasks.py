@@ -164,7 +164,8 @@ class PoseTask(Task):
         return ev
 
     def after_step(self, trainer: "Trainer", step: int) -> dict:
-        if (step + 1) % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
+        # same cadence as the trainer's progress line, so the bar shows the errors
+        if step % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
             ev = self._record(step + 1)
             return {"rot": f"{ev['rot_err_deg']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
         return {}
