@@ -54,7 +54,7 @@ _TRAIN_FLAGS = [
     ("--iters", int, "training steps"),
     ("--out", str, "run folder (default runs/<scene>_<task>[_g2fr])"),
     ("--seed", int, "random seed (views, noise, sampling)"),
-    ("--model", str, "field model (ngp)"),
+    ("--model", str, "grid encoding: ngp (hash grid) or mtrf (multi-resolution CP, the paper's Mtrf)"),
     ("--downscale", int, "integer image downscale"),
     ("--builtin-resolution", int, "image size of built-in scenes"),
     ("--g2fr-beta", float, "fraction of training over which G2fR switches levels on"),

@@ -28,7 +28,7 @@ class TrainConfig:
     scene: str = "chair"  # built-in scene name, or a dataset scene under data_root
     data_root: Optional[str] = None  # dataset folder; default: $WARPNERF_DATA
     task: str = "full"  # full | fewshot | pose
-    model: str = "ngp"  # field model (only the Instant-NGP hash-grid field is implemented)
+    model: str = "ngp"  # grid encoding: ngp (Instant-NGP hash grid) | mtrf (multi-resolution CP, paper's Mtrf)
     downscale: int = 1  # integer image downscale applied at load time
     builtin_resolution: Optional[int] = None  # image size of built-in scenes (None: generator default)
     # --- optimisation ---
@@ -48,6 +48,8 @@ class TrainConfig:
     log2_table_size: int = 19  # T = 2^k
     base_resolution: int = 16  # points per axis of the coarsest level
     max_resolution: int = 2048  # points per axis of the finest level (over the scene box)
+    cp_rank: int = 8  # mtrf: CP components R per level (output L*R features)
+    cp_max_resolution: int = 512  # mtrf: line length of the finest level
     hidden: int = 64  # MLP width
     geo_features: int = 15  # density-MLP features passed to the color MLP
     # --- rendering ---
@@ -156,8 +158,8 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"g2fr_mask must be cosine or binary, got '{cfg.g2fr_mask}'")
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
-    if cfg.model != "ngp":
-        raise ConfigError(f"unknown model '{cfg.model}': only 'ngp' is implemented")
+    if cfg.model not in ("ngp", "mtrf"):
+        raise ConfigError(f"unknown model '{cfg.model}': expected ngp or mtrf")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
     if cfg.eval_every < 1:

@@ -1,8 +1,9 @@
 """Input encodings as torch modules: the multi-resolution hash grid (Warp op), NeRF's
 positional encoding, and spherical harmonics for view directions.
 
-The hash grid is the one G²fR masks: ``HashGridEncoder.forward(x, level_weights)`` takes the
-per-level weights produced by :class:`warpnerf.freq_mask.G2fRSchedule`.
+G²fR masks the levels of the two grid encoders, the hash grid (``HashGridEncoder``, Instant-NGP)
+and the multi-resolution CP decomposition (``CPGridEncoder``, the paper's Mtrf): their
+``forward(x, level_weights)`` takes the per-level weights of :class:`warpnerf.freq_mask.G2fRSchedule`.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import math
 import torch
 from torch import nn
 
+from .ops.cpgrid import CPGridSpec, cpgrid_encode, init_cp_lines
 from .ops.hashgrid import HashGridSpec, hashgrid_encode
 
 
@@ -32,12 +34,42 @@ class HashGridEncoder(nn.Module):
     def out_dim(self) -> int:
         return self.spec.out_dim
 
+    def grid_parameters(self):
+        return [self.table]
+
     def forward(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
         return hashgrid_encode(x.contiguous(), self.table, self.spec, level_weights)
 
     def extra_repr(self) -> str:
         s = self.spec
         return f"dim={s.dim}, levels={s.n_levels}, features={s.n_features}, T=2^{s.log2_table_size}, res={s.resolutions[0]}..{s.resolutions[-1]}"
+
+
+class CPGridEncoder(nn.Module):
+    """Multi-resolution CP decomposition (the paper's "Mtrf"): per level l and component r the
+    product of three interpolated 1-D lines, v_x(x) v_y(y) v_z(z), with learnable ``self.lines``.
+
+    Input (N, 3) points in [0, 1]^3 (clamped), output (N, L*R).
+    """
+
+    def __init__(self, spec: CPGridSpec, generator: torch.Generator | None = None):
+        super().__init__()
+        self.spec = spec
+        self.lines = nn.Parameter(init_cp_lines(spec, generator=generator))
+
+    @property
+    def out_dim(self) -> int:
+        return self.spec.out_dim
+
+    def grid_parameters(self):
+        return [self.lines]
+
+    def forward(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+        return cpgrid_encode(x.contiguous(), self.lines, self.spec, level_weights)
+
+    def extra_repr(self) -> str:
+        s = self.spec
+        return f"levels={s.n_levels}, rank={s.rank}, res={s.resolutions[0]}..{s.resolutions[-1]}"
 
 
 class PositionalEncoder(nn.Module):
@@ -94,3 +126,18 @@ class SphericalHarmonicsEncoder(nn.Module):
             ],
             dim=-1,
         )
+
+
+def make_grid_encoder(cfg, generator: torch.Generator | None = None) -> nn.Module:
+    """The grid encoder a :class:`warpnerf.config.TrainConfig` asks for (``cfg.model``)."""
+    if cfg.model == "ngp":
+        spec = HashGridSpec.create(3, cfg.levels, cfg.features, cfg.log2_table_size, cfg.base_resolution,
+                                   cfg.max_resolution)
+        return HashGridEncoder(spec, generator=generator)
+    if cfg.model == "mtrf":
+        spec = CPGridSpec.create(cfg.levels, cfg.cp_rank, cfg.base_resolution, cfg.cp_max_resolution)
+        return CPGridEncoder(spec, generator=generator)
+    raise ValueError(f"unknown model '{cfg.model}': expected one of {list(MODELS)}")
+
+
+MODELS = ("ngp", "mtrf")

@@ -1,5 +1,7 @@
-"""The Instant-NGP radiance field: hash grid (G²fR-masked) -> density MLP -> color MLP.
+"""The radiance field: grid encoding (G²fR-masked) -> density MLP -> color MLP.
 
+The encoding is Instant-NGP's hash grid (``model = "ngp"``) or the multi-resolution CP
+decomposition the paper calls Mtrf (``model = "mtrf"``); both take the same per-level weights.
 Positions are world coordinates; the field maps its box to [0, 1]^3 for the grid.
 """
 
@@ -8,8 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .encoders import HashGridEncoder, SphericalHarmonicsEncoder
-from .ops.hashgrid import HashGridSpec
+from .encoders import SphericalHarmonicsEncoder
 
 
 class _TruncExp(torch.autograd.Function):
@@ -30,24 +31,24 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x)
 
 
-class NGPField(nn.Module):
-    """sigma(x), rgb(x, d) with a multi-resolution hash grid.
+class GridField(nn.Module):
+    """sigma(x), rgb(x, d) from a multi-resolution grid encoding.
 
     Args:
         aabb: 6 floats, the box mapped to the grid's unit cube.
-        spec: hash-grid geometry.
+        encoder: a grid encoder (``out_dim``, ``forward(x01, level_weights)``, ``grid_parameters()``),
+            see :func:`warpnerf.encoders.make_grid_encoder`.
         hidden: MLP width; geo_features: density-MLP outputs fed to the color MLP.
     """
 
-    def __init__(self, aabb, spec: HashGridSpec, hidden: int = 64, geo_features: int = 15,
-                 generator: torch.Generator | None = None):
+    def __init__(self, aabb, encoder: nn.Module, hidden: int = 64, geo_features: int = 15):
         super().__init__()
         self.register_buffer("aabb_min", torch.tensor(aabb[:3], dtype=torch.float32), persistent=True)
         self.register_buffer("aabb_size", torch.tensor(aabb[3:], dtype=torch.float32) - self.aabb_min, persistent=True)
-        self.encoder = HashGridEncoder(spec, generator=generator)
+        self.encoder = encoder
         self.dir_encoder = SphericalHarmonicsEncoder()
         self.density_net = nn.Sequential(
-            nn.Linear(spec.out_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1 + geo_features)
+            nn.Linear(encoder.out_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1 + geo_features)
         )
         self.color_net = nn.Sequential(
             nn.Linear(geo_features + self.dir_encoder.out_dim, hidden), nn.ReLU(inplace=True),
@@ -76,9 +77,9 @@ class NGPField(nn.Module):
         return sigma, self.color(geo, dirs)
 
     def param_groups(self, lr: float, weight_decay_mlp: float) -> list[dict]:
-        """Adam groups: the table without weight decay, the MLPs with a little (instant-ngp)."""
+        """Adam groups: the grid without weight decay, the MLPs with a little (instant-ngp)."""
         mlp = [p for n, p in self.named_parameters() if not n.startswith("encoder.")]
         return [
-            {"params": [self.encoder.table], "lr": lr, "weight_decay": 0.0, "name": "grid"},
+            {"params": list(self.encoder.grid_parameters()), "lr": lr, "weight_decay": 0.0, "name": "grid"},
             {"params": mlp, "lr": lr, "weight_decay": weight_decay_mlp, "name": "mlp"},
         ]

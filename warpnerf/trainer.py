@@ -14,10 +14,10 @@ import torch
 from . import metrics as M
 from .config import TrainConfig
 from .data.scene import Scene, Views
-from .field import NGPField
+from .encoders import make_grid_encoder
+from .field import GridField
 from .freq_mask import G2fRSchedule
 from .occupancy import OccupancyGrid
-from .ops.hashgrid import HashGridSpec
 from .renderer import Renderer, default_step, pixel_rays
 from .tasks import Task
 
@@ -45,10 +45,8 @@ class Trainer:
         self.views = views
         self.images = views.images.to(self.device)
         self.train_c2w = views.c2w.to(self.device)
-        spec = HashGridSpec.create(3, cfg.levels, cfg.features, cfg.log2_table_size, cfg.base_resolution,
-                                   cfg.max_resolution)
-        self.field = NGPField(scene.aabb, spec, cfg.hidden, cfg.geo_features,
-                              generator=torch.Generator().manual_seed(cfg.seed)).to(self.device)
+        encoder = make_grid_encoder(cfg, generator=torch.Generator().manual_seed(cfg.seed))
+        self.field = GridField(scene.aabb, encoder, cfg.hidden, cfg.geo_features).to(self.device)
         self.occupancy = OccupancyGrid(scene.aabb, cfg.occ_resolution, self.device, warmup_steps=cfg.occ_warmup,
                                        update_every=cfg.occ_update_every)
         ray_transform = None

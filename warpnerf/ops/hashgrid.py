@@ -115,6 +115,10 @@ class _Launcher:
         for kernel in (self.fwd, self.bwd):
             wp.load_module(kernel.module, device=self.device)
 
+    def launch_kw(self, device: torch.device) -> dict:
+        """CPU launches, or launches on torch's *current* CUDA stream (ordered with torch's work)."""
+        return {"device": "cpu"} if self.on_cpu else {"stream": self.wp.stream_from_torch(device)}
+
     def levels(self, ids: tuple[int, ...]):
         if ids not in self._levels:
             self._levels[ids] = self.wp.array(list(ids), dtype=self.wp.int32, device=self.device)
@@ -141,9 +145,10 @@ class _Launcher:
         chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
 
         inputs = list(args.values())
+        kw = self.launch_kw(x.device)
 
         def launch(lo: int, hi: int):
-            wp.launch(self.fwd, dim=(len(active), hi - lo), inputs=[*inputs[:-1], lo, inputs[-1]], device=self.device)
+            wp.launch(self.fwd, dim=(len(active), hi - lo), inputs=[*inputs[:-1], lo, inputs[-1]], **kw)
 
         run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in chunks])
         return out.view(n, spec.out_dim)
@@ -171,11 +176,12 @@ class _Launcher:
         # kernels need valid arrays even for outputs they skip
         gt = wp.from_torch(grad_table if want_table else table.new_zeros(1, spec.n_features), dtype=self.vec)
         gx_parts = grad_x_parts if want_x else x.new_zeros(len(groups), 1, spec.dim)
+        kw = self.launch_kw(x.device)
 
         def launch(k: int):
             wp.launch(self.bwd, dim=(len(groups[k]), n),
                       inputs=[*common[:3], self.levels(groups[k]), *meta, gt, wp.from_torch(gx_parts[k], dtype=self.wp_dtype, requires_grad=False)],
-                      device=self.device)
+                      **kw)
 
         run_chunks([lambda k=k: launch(k) for k in range(len(groups))])
         grad_x = None

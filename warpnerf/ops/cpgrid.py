@@ -1,0 +1,320 @@
+"""``cpgrid_encode``: the multi-resolution CP grid encoding ("Mtrf" of G²fR) as a torch op.
+
+Mtrf is CP-TensoRF made multi-resolution the way Instant-NGP's hash grid is: L levels whose
+line resolutions grow geometrically, each level a rank-R CP factorisation of a 3-D grid.
+For level l with s_l points per axis and a point x in [0, 1]^3 (clamped), axis a reads its R
+lines at u_a = x_a * (s_l - 1) with linear interpolation ("align corners"), and the level's R
+features are the products of the three interpolated values, scaled by the G²fR weight w_l:
+
+    out[:, l*R + r] = w_l * v^{l,x}_r(x) * v^{l,y}_r(y) * v^{l,z}_r(z)
+
+Everything mirrors :mod:`warpnerf.ops.hashgrid`: level-major launches, levels with weight 0
+are never launched (no reads, no writes, output 0), the forward is split over CPU threads by
+points and the backward by *levels* (two fixed chunks dealt alternately, each scattering into
+disjoint rows of the line gradient and its own dx buffer), so 1- and 2-thread results are
+bit-identical. On CUDA each pass is a single launch on torch's current stream.
+
+Positions outside [0, 1]^3 are clamped to the box (their gradient is 0, like ``torch.clamp``);
+non-finite positions are an error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..device import init_warp, num_threads, run_chunks, split_range
+
+__all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
+
+# backward level chunks: fixed (not the thread count) so the dx summation order never changes
+_BWD_LEVEL_CHUNKS = 2
+# Warp compiles one vector type of length R per rank; beyond this, registers and compile time explode
+_MAX_RANK = 256
+
+
+@dataclass(frozen=True)
+class CPGridSpec:
+    """Static description of a multi-resolution CP grid; build it with :meth:`create`.
+
+    Defaults for NeRF: L = 16 levels, R = 16 components per level, lines of 16 -> 512 points
+    per axis (growth 2^(5/15) ~ 1.26). That is 256 features per point (the hash grid's default
+    gives 32) from only sum(s_l) = 2416 rows x 3 axes x 16 = 116k parameters: lines are cheap,
+    so the finest level can be as fine as TensoRF's (~500 cells per axis) without hashing.
+    TensoRF's single-resolution CP uses 48-96 components at up to ~500 cells; here the rank is
+    spread over 16 levels, so each level needs far fewer.
+    """
+
+    n_levels: int  # L
+    rank: int  # R, CP components (features) per level
+    base_resolution: int  # s_0, points per axis of the coarsest level
+    max_resolution: int  # s_{L-1}, points per axis of the finest level
+    resolutions: tuple[int, ...]  # s_l, line length (points per axis) of each level
+    offsets: tuple[int, ...]  # first row of each level in ``lines``, plus the total at the end
+
+    @classmethod
+    def create(
+        cls,
+        n_levels: int = 16,
+        rank: int = 16,
+        base_resolution: int = 16,
+        max_resolution: int = 512,
+    ) -> "CPGridSpec":
+        """Levels grow geometrically from ``base_resolution`` to ``max_resolution`` points per axis."""
+        for name, value in (("n_levels", n_levels), ("rank", rank), ("base_resolution", base_resolution),
+                            ("max_resolution", max_resolution)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError(f"CPGridSpec: {name} must be an int, got {type(value).__name__}")
+        if n_levels < 1:
+            raise ValueError(f"CPGridSpec: need n_levels >= 1, got {n_levels}")
+        if not 1 <= rank <= _MAX_RANK:
+            raise ValueError(f"CPGridSpec: rank must be in [1, {_MAX_RANK}], got {rank}")
+        if not 2 <= base_resolution <= max_resolution:
+            raise ValueError(f"CPGridSpec: need 2 <= base_resolution <= max_resolution, got {base_resolution}, {max_resolution}")
+        if max_resolution > 2**20:
+            raise ValueError(f"CPGridSpec: max_resolution must be <= 2**20, got {max_resolution}")
+        growth = 1.0 if n_levels == 1 else math.exp(math.log(max_resolution / base_resolution) / (n_levels - 1))
+        resolutions, offsets = [], [0]
+        for m in range(n_levels):
+            # same rule as HashGridSpec: the epsilon keeps exact powers from flooring one below
+            s = max(2, int(math.floor(base_resolution * growth**m + 1e-6)))
+            resolutions.append(s)
+            offsets.append(offsets[-1] + s)
+        return cls(n_levels, rank, base_resolution, max_resolution, tuple(resolutions), tuple(offsets))
+
+    @property
+    def n_rows(self) -> int:
+        """Rows of the (n_rows, 3, R) ``lines`` tensor."""
+        return self.offsets[-1]
+
+    @property
+    def out_dim(self) -> int:
+        return self.n_levels * self.rank
+
+    @property
+    def lines_shape(self) -> tuple[int, int, int]:
+        return (self.n_rows, 3, self.rank)
+
+    def level_sizes(self) -> list[int]:
+        return list(self.resolutions)
+
+
+def init_cp_lines(
+    spec: CPGridSpec,
+    generator: torch.Generator | None = None,
+    scale: float = 0.3,
+    *,
+    noise: float = 0.1,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> torch.Tensor:
+    """Initial ``lines`` of shape (n_rows, 3, R): every entry ``scale * (1 + noise * N(0, 1))``.
+
+    Why a positive constant plus small noise: each feature is a product of three factors, so
+    the gradient reaching one factor is the upstream gradient times the *other two*.
+    A zero-mean init (TensoRF's CP uses N(0, 0.2^2)) makes products ~sigma^3 of random sign and
+    per-factor gradients ~sigma^2 that keep cancelling; a tiny zero-mean init makes them vanish
+    outright. Centring every factor on ``scale`` (0.3) gives products near scale^3 = 0.027 —
+    small, and the same everywhere, so the MLP's first bias absorbs it — while every factor gets
+    the upstream gradient times ~scale^2 = 0.09 from the first step on. The relative noise
+    (10 %) keeps the factors far from zero (no sign flips at start) and gives each component
+    and level a slightly different starting point.
+
+    ``generator`` (a CPU ``torch.Generator``) makes the init reproducible; the noise is drawn on
+    CPU and then moved to ``device``.
+    """
+    if not isinstance(spec, CPGridSpec):
+        raise TypeError(f"init_cp_lines: spec must be a CPGridSpec, got {type(spec).__name__}")
+    if not (scale > 0 and math.isfinite(scale)) or not (noise >= 0 and math.isfinite(noise)):
+        raise ValueError(f"init_cp_lines: need scale > 0 and noise >= 0, got {scale}, {noise}")
+    eps = torch.randn(spec.lines_shape, generator=generator, dtype=torch.float64)
+    return (scale * (1.0 + noise * eps)).to(dtype=dtype, device=device).contiguous()
+
+
+def cpgrid_encode(
+    x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Encode points with a multi-resolution CP grid.
+
+    Args:
+        x: (N, 3) float32 (or float64) points, expected in [0, 1]^3; outside values are clamped.
+            Differentiable (gradient 0 where clamped).
+        lines: (spec.n_rows, 3, R) line values of all levels, same dtype and device as ``x``.
+            Differentiable.
+        spec: the grid geometry (:class:`CPGridSpec`).
+        level_weights: (L,) G²fR weights w_l in [0, 1]; ``None`` means all ones. Not differentiable.
+            Levels with w_l = 0 are skipped (output 0, no gradient).
+
+    Returns:
+        (N, L*R) features; columns [l*R, (l+1)*R) belong to level l and are scaled by w_l.
+
+    Example:
+        >>> spec = CPGridSpec.create(n_levels=4, rank=4, base_resolution=4, max_resolution=32)
+        >>> cpgrid_encode(torch.rand(5, 3), init_cp_lines(spec), spec).shape
+        torch.Size([5, 16])
+    """
+    weights = _check_inputs(x, lines, spec, level_weights)
+    return _CPGridEncode.apply(x, lines, weights, spec)
+
+
+def _check_inputs(x, lines, spec, level_weights) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor) or not isinstance(lines, torch.Tensor):
+        raise TypeError("cpgrid_encode: x and lines must be torch tensors")
+    if not isinstance(spec, CPGridSpec):
+        raise TypeError(f"cpgrid_encode: spec must be a CPGridSpec, got {type(spec).__name__}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"cpgrid_encode: x must be float32 or float64, got {x.dtype}")
+    if lines.dtype != x.dtype:
+        raise TypeError(f"cpgrid_encode: lines dtype {lines.dtype} differs from x dtype {x.dtype}")
+    if x.device != lines.device:
+        raise ValueError(f"cpgrid_encode: x is on {x.device} but lines is on {lines.device}")
+    if x.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"cpgrid_encode: only cpu and cuda tensors are supported, got {x.device}")
+    if x.dim() != 2 or x.shape[1] != 3:
+        raise ValueError(f"cpgrid_encode: x must have shape (N, 3), got {tuple(x.shape)}")
+    if tuple(lines.shape) != spec.lines_shape:
+        raise ValueError(f"cpgrid_encode: lines must have shape {spec.lines_shape}, got {tuple(lines.shape)}")
+    if not x.is_contiguous() or not lines.is_contiguous():
+        raise ValueError("cpgrid_encode: x and lines must be contiguous (call .contiguous())")
+    if x.numel() and not bool(torch.isfinite(x).all()):
+        raise ValueError("cpgrid_encode: x contains NaN or inf")
+    if level_weights is None:
+        return torch.ones(spec.n_levels, dtype=x.dtype, device=x.device)
+    if not isinstance(level_weights, torch.Tensor) or tuple(level_weights.shape) != (spec.n_levels,):
+        raise ValueError(f"cpgrid_encode: level_weights must be a tensor of shape ({spec.n_levels},)")
+    w = level_weights.detach().to(device=x.device, dtype=x.dtype).contiguous()
+    if not bool(((w >= 0) & (w <= 1)).all()):  # also rejects NaN
+        raise ValueError("cpgrid_encode: level weights must lie in [0, 1]")
+    return w
+
+
+class _Launcher:
+    """Per (spec, device, dtype) Warp state: kernels and the small per-level metadata arrays."""
+
+    _cache: dict = {}
+
+    @classmethod
+    def get(cls, spec: CPGridSpec, device: torch.device, dtype: torch.dtype) -> "_Launcher":
+        key = (spec, str(device), dtype)
+        if key not in cls._cache:
+            cls._cache[key] = cls(spec, device, dtype)
+        return cls._cache[key]
+
+    def __init__(self, spec: CPGridSpec, device: torch.device, dtype: torch.dtype):
+        wp = init_warp()
+        from ..kernels.cpgrid import make_cpgrid_kernels
+
+        self.wp = wp
+        self.spec = spec
+        self.on_cpu = device.type == "cpu"
+        self.torch_device = device
+        self.wp_dtype = wp.float64 if dtype == torch.float64 else wp.float32
+        self.fwd, self.bwd, self.vec = make_cpgrid_kernels(spec.rank, self.wp_dtype)
+        self.device = "cpu" if self.on_cpu else f"cuda:{device.index or 0}"
+        as_i32 = lambda v: wp.array(list(v), dtype=wp.int32, device=self.device)  # noqa: E731
+        self.resolutions = as_i32(spec.resolutions)
+        self.offsets = as_i32(spec.offsets[:-1])
+        self._levels: dict = {}
+        # compile/load now: two threads hitting a cold module at once would both compile it
+        for kernel in (self.fwd, self.bwd):
+            wp.load_module(kernel.module, device=self.device)
+        self._sync()
+
+    def _sync(self) -> None:
+        # metadata uploads go through Warp's stream, launches through torch's: finish the uploads first
+        if not self.on_cpu:
+            self.wp.synchronize_device(self.device)
+
+    def levels(self, ids: tuple[int, ...]):
+        if ids not in self._levels:
+            self._levels[ids] = self.wp.array(list(ids), dtype=self.wp.int32, device=self.device)
+            self._sync()
+        return self._levels[ids]
+
+    def _launch(self, kernel, dim, inputs) -> None:
+        if self.on_cpu:
+            self.wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")
+        else:  # order the launch with torch's work on the same stream
+            self.wp.launch(kernel, dim=dim, inputs=inputs, stream=self.wp.stream_from_torch(self.torch_device))
+
+    def _view(self, t: torch.Tensor, dtype):
+        return self.wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+    def forward(self, x: torch.Tensor, lines: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        spec = self.spec
+        n = x.shape[0]
+        out = torch.zeros(n, spec.n_levels, spec.rank, dtype=x.dtype, device=x.device)
+        active = tuple(m for m, w in enumerate(weights.tolist()) if w > 0)
+        if n == 0 or not active:
+            return out.view(n, spec.out_dim)
+        head = [
+            self._view(x, self.wp_dtype),
+            self._view(lines, self.vec),
+            self.levels(active),
+            self.resolutions,
+            self.offsets,
+            self._view(weights, self.wp_dtype),
+        ]
+        out_wp = self._view(out, self.vec)
+        # a gather: every output written once, so splitting by points is thread-count independent
+        chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
+
+        def launch(lo: int, hi: int):
+            self._launch(self.fwd, (len(active), hi - lo), [*head, lo, out_wp])
+
+        run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in chunks])
+        return out.view(n, spec.out_dim)
+
+    def backward(self, x, lines, weights, grad_out, want_x: bool, want_lines: bool):
+        spec = self.spec
+        n = x.shape[0]
+        active = [m for m, w in enumerate(weights.tolist()) if w > 0]
+        grad_lines = torch.zeros_like(lines) if want_lines else None
+        n_chunks = _BWD_LEVEL_CHUNKS if self.on_cpu else 1
+        # levels own disjoint row ranges of ``lines``: chunks of levels never scatter into the same rows
+        groups = [tuple(active[k::n_chunks]) for k in range(n_chunks)]
+        groups = [g for g in groups if g]
+        grad_x_parts = torch.zeros(max(len(groups), 1), n, 3, dtype=x.dtype, device=x.device) if want_x else None
+        if n == 0 or not groups:
+            return (grad_x_parts.sum(0) if want_x else None), grad_lines
+        go = grad_out.contiguous().view(n, spec.n_levels, spec.rank)
+        common = [self._view(x, self.wp_dtype), self._view(lines, self.vec), self._view(go, self.vec)]
+        meta = [self.resolutions, self.offsets, self._view(weights, self.wp_dtype), int(want_lines), int(want_x)]
+        # kernels need valid arrays even for outputs they skip
+        gl = self._view(grad_lines if want_lines else lines.new_zeros(1, 3, spec.rank), self.vec)
+        gx_parts = grad_x_parts if want_x else x.new_zeros(len(groups), 1, 3)
+
+        level_arrays = [self.levels(g) for g in groups]  # built here, not inside the worker threads
+
+        def launch(k: int):
+            self._launch(self.bwd, (len(groups[k]), n),
+                         [*common, level_arrays[k], *meta, gl, self._view(gx_parts[k], self.wp_dtype)])
+
+        run_chunks([lambda k=k: launch(k) for k in range(len(groups))])
+        grad_x = None
+        if want_x:
+            grad_x = grad_x_parts[0]
+            for k in range(1, len(groups)):
+                grad_x = grad_x + grad_x_parts[k]
+        return grad_x, grad_lines
+
+
+class _CPGridEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, lines, weights, spec):
+        launcher = _Launcher.get(spec, x.device, x.dtype)
+        out = launcher.forward(x, lines.detach(), weights)
+        ctx.launcher = launcher
+        ctx.save_for_backward(x, lines, weights)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, lines, weights = ctx.saved_tensors
+        want_x, want_lines = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if not (want_x or want_lines):
+            return None, None, None, None
+        grad_x, grad_lines = ctx.launcher.backward(x.detach(), lines.detach(), weights, grad_out, want_x, want_lines)
+        return grad_x, grad_lines, None, None
