@@ -47,16 +47,17 @@ def test_bad_device_is_an_error(capsys):
     assert "unknown device" in capsys.readouterr().err
 
 
-def test_bench_encoding_json_is_measured():
+@pytest.mark.parametrize("model", ["ngp", "mtrf"])
+def test_bench_encoding_json_is_measured(model):
     code, out, err = run_cli("bench", "encoding", "--n", "2048", "--levels", "4", "--log2-table-size", "12",
-                             "--repeats", "1", "--json")
+                             "--repeats", "1", "--json", "--model", model)
     assert code == 0, err
     res = json.loads(out.strip().splitlines()[-1])
     for key in ("warp_fwd_pts_s", "warp_fwdbwd_pts_s", "torch_fwd_pts_s", "torch_fwdbwd_pts_s", "ratio_fwd",
                 "ratio_fwdbwd", "threads", "device"):
         assert key in res
     assert res["warp_fwd_pts_s"] > 0 and res["device"] == "cpu"
-    assert set(res["cases"]) == {"uniform", "rays", "g2fr_first4"}
+    assert set(res["cases"]) == {"uniform", "rays", "g2fr_first4"} and res["model"] == model
 
 
 def test_scenes_lists_builtins():

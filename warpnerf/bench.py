@@ -42,23 +42,35 @@ def ray_like_points(n: int, samples_per_ray: int = 128, generator: torch.Generat
 
 
 def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_table_size: int = 19,
-                   repeats: int = 5, torch_repeats: int = 3, device: str = "cpu", seed: int = 0) -> dict:
-    """Hash-grid encoding throughput (points/s) of the Warp op and the torch twin.
+                   repeats: int = 5, torch_repeats: int = 3, device: str = "cpu", seed: int = 0,
+                   model: str = "ngp", cp_rank: int = 8) -> dict:
+    """Grid-encoding throughput (points/s) of the Warp op and its torch twin.
 
+    ``model`` picks the encoding: ``ngp`` (hash grid: ``features``, ``log2_table_size``) or
+    ``mtrf`` (multi-resolution CP lines: ``cp_rank`` components, lines of 16..512 entries).
     Cases: uniform random points (the headline numbers), ray-like coherent points, and the
-    G²fR mask early in training (first 4 levels active). ``fwdbwd`` differentiates the table
+    G²fR mask early in training (first 4 levels active). ``fwdbwd`` differentiates the grid
     only, as in NeRF training with fixed cameras; ``warp_fwdbwd_xgrad_pts_s`` adds the
     gradient with respect to the points (pose task).
     """
-    from .encoders import HashGridEncoder
-    from .ops.hashgrid import HashGridSpec, hashgrid_encode
-    from .ops.reference import hashgrid as twin
-
     wp_device = devmod.resolve_device(device)
     tdev = devmod.torch_device(wp_device)
     gen = torch.Generator().manual_seed(seed)
-    spec = HashGridSpec.create(dim=3, n_levels=levels, n_features=features, log2_table_size=log2_table_size)
-    table = HashGridEncoder(spec, generator=gen).table.data.to(tdev).requires_grad_()
+    if model == "ngp":
+        from .encoders import HashGridEncoder
+        from .ops.hashgrid import HashGridSpec, hashgrid_encode as encode_op
+        from .ops.reference.hashgrid import hashgrid_encode as twin_op
+
+        spec = HashGridSpec.create(dim=3, n_levels=levels, n_features=features, log2_table_size=log2_table_size)
+        table = HashGridEncoder(spec, generator=gen).table.data.to(tdev).requires_grad_()
+    elif model == "mtrf":
+        from .ops.cpgrid import CPGridSpec, cpgrid_encode as encode_op, init_cp_lines
+        from .ops.reference.cpgrid import cpgrid_encode as twin_op
+
+        spec = CPGridSpec.create(n_levels=levels, rank=cp_rank)
+        table = init_cp_lines(spec, generator=gen).to(tdev).requires_grad_()
+    else:
+        raise ValueError(f"unknown model '{model}': expected ngp or mtrf")
     early = torch.zeros(levels)
     early[: min(4, levels)] = 1.0
     cases = {
@@ -89,13 +101,13 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         x = x.to(tdev)
         w = None if w is None else w.to(tdev)
         r = {
-            "warp_fwd_s": timed(hashgrid_encode, x, w, False),
-            "warp_fwdbwd_s": timed(hashgrid_encode, x, w, True),
-            "torch_fwd_s": timed(twin.hashgrid_encode, x, w, False, reps=torch_repeats),
-            "torch_fwdbwd_s": timed(twin.hashgrid_encode, x, w, True, reps=torch_repeats),
+            "warp_fwd_s": timed(encode_op, x, w, False),
+            "warp_fwdbwd_s": timed(encode_op, x, w, True),
+            "torch_fwd_s": timed(twin_op, x, w, False, reps=torch_repeats),
+            "torch_fwdbwd_s": timed(twin_op, x, w, True, reps=torch_repeats),
         }
         if name == "uniform":
-            r["warp_fwdbwd_xgrad_s"] = timed(hashgrid_encode, x.clone(), w, True, xgrad=True)
+            r["warp_fwdbwd_xgrad_s"] = timed(encode_op, x.clone(), w, True, xgrad=True)
         for key in [k for k in r if k.endswith("_s")]:
             r[key[:-2] + "_pts_s"] = n / r[key]
         r["ratio_fwd"] = r["torch_fwd_s"] / r["warp_fwd_s"]
@@ -105,10 +117,11 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
     head = results["uniform"]
     return {
         "benchmark": "encoding",
+        "model": model,
         "n": n,
         "levels": levels,
-        "features": features,
-        "log2_table_size": log2_table_size,
+        "features": features if model == "ngp" else cp_rank,
+        "log2_table_size": log2_table_size if model == "ngp" else None,
         "device": wp_device,
         "threads": devmod.num_threads() if wp_device == "cpu" else None,
         "repeats": repeats,
@@ -120,9 +133,10 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
 
 
 def format_encoding(res: dict) -> str:
+    grid = (f"hash-grid encoding: N={res['n']}, L={res['levels']}, F={res['features']}, T=2^{res['log2_table_size']}"
+            if res.get("model", "ngp") == "ngp" else f"Mtrf (CP lines) encoding: N={res['n']}, L={res['levels']}, R={res['features']}")
     lines = [
-        f"hash-grid encoding: N={res['n']}, L={res['levels']}, F={res['features']}, T=2^{res['log2_table_size']}, "
-        f"device={res['device']}, threads={res['threads']}, torch threads={res['torch_threads']}",
+        f"{grid}, device={res['device']}, threads={res['threads']}, torch threads={res['torch_threads']}",
         f"{'case':<13}{'warp fwd':>14}{'warp fwd+bwd':>15}{'torch fwd':>14}{'torch fwd+bwd':>15}{'ratio fwd':>11}{'ratio f+b':>11}",
     ]
     for name, r in res["cases"].items():

@@ -37,7 +37,7 @@ def cmd_bench(args) -> int:
     _setup_device(args)
     if args.what == "encoding":
         res = bench.bench_encoding(n=args.n, levels=args.levels, log2_table_size=args.log2_table_size,
-                                   repeats=args.repeats, device=args.device)
+                                   repeats=args.repeats, device=args.device, model=args.model)
         print(json.dumps(res) if args.json else bench.format_encoding(res))
         return 0
     if args.what == "step":
@@ -169,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--n", type=int, default=262144, help="points per call")
     b.add_argument("--levels", type=int, default=16)
     b.add_argument("--log2-table-size", type=int, default=19)
+    b.add_argument("--model", default="ngp", choices=["ngp", "mtrf"], help="encoding: hash grid or Mtrf CP lines")
     b.add_argument("--repeats", type=int, default=5)
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
