@@ -10,6 +10,8 @@ import argparse
 import json
 import sys
 
+from .config import MODELS
+
 
 class UserError(Exception):
     """An error caused by the user's input; printed as one line without a traceback."""
@@ -169,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--n", type=int, default=262144, help="points per call")
     b.add_argument("--levels", type=int, default=16)
     b.add_argument("--log2-table-size", type=int, default=19)
-    b.add_argument("--model", default="ngp", choices=["ngp", "mtrf"], help="encoding: hash grid or Mtrf CP lines")
+    b.add_argument("--model", default="ngp", choices=list(MODELS), help="encoding: hash grid or Mtrf CP lines")
     b.add_argument("--repeats", type=int, default=5)
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")

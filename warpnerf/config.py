@@ -18,6 +18,15 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
+# grid encodings a field can use: Instant-NGP's hash grid and the paper's multi-resolution CP ("Mtrf")
+MODELS = ("ngp", "mtrf")
+
+
+def exp_decay(start: float, end: float, frac: float) -> float:
+    """Exponential schedule from ``start`` (frac 0) to ``end`` (frac 1): the learning rates'."""
+    return start * (end / start) ** frac
+
+
 class ConfigError(ValueError):
     """A bad configuration file or value (one line, names the key)."""
 
@@ -158,8 +167,8 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"g2fr_mask must be cosine or binary, got '{cfg.g2fr_mask}'")
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
-    if cfg.model not in ("ngp", "mtrf"):
-        raise ConfigError(f"unknown model '{cfg.model}': expected ngp or mtrf")
+    if cfg.model not in MODELS:
+        raise ConfigError(f"unknown model '{cfg.model}': expected one of {', '.join(MODELS)}")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
     if cfg.eval_every < 1:

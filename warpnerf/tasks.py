@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Optional
 
 import torch
 
-from .config import ConfigError, TrainConfig
+from .config import ConfigError, TrainConfig, exp_decay
 from .data.scene import Scene, Views
 
 if TYPE_CHECKING:
@@ -146,8 +146,7 @@ class PoseTask(Task):
         return self.correction(self.noisy_c2w[idx], idx)
 
     def optimizer_step(self, trainer: "Trainer", step: int) -> None:
-        frac = step / max(self.cfg.iters - 1, 1)
-        lr = self.cfg.pose_lr * (self.cfg.pose_lr_final / self.cfg.pose_lr) ** frac
+        lr = exp_decay(self.cfg.pose_lr, self.cfg.pose_lr_final, step / max(self.cfg.iters - 1, 1))
         for g in self.optimizer.param_groups:
             g["lr"] = lr
         self.optimizer.step()

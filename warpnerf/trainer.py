@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from . import metrics as M
-from .config import TrainConfig
+from .config import TrainConfig, exp_decay
 from .data.scene import Scene, Views
 from .encoders import make_grid_encoder
 from .field import GridField
@@ -153,7 +153,7 @@ class Trainer:
         try:
             for i in range(n_steps):
                 for g in opt.param_groups:
-                    g["lr"] = self.cfg.pose_lr * (self.cfg.pose_lr_final / self.cfg.pose_lr) ** (i / max(n_steps - 1, 1))
+                    g["lr"] = exp_decay(self.cfg.pose_lr, self.cfg.pose_lr_final, i / max(n_steps - 1, 1))
                 py = torch.randint(0, views.height, idx.shape, generator=gen, device=self.device)
                 px = torch.randint(0, views.width, idx.shape, generator=gen, device=self.device)
                 o, d = pixel_rays(corr(c2w[idx], idx), px.float() + 0.5, py.float() + 0.5, views.focal, views.cx,

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from ..device import init_warp, num_threads, run_chunks, split_range
+from .launch import GridEncodeFunction
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -156,7 +157,7 @@ def cpgrid_encode(
         torch.Size([5, 16])
     """
     weights = _check_inputs(x, lines, spec, level_weights)
-    return _CPGridEncode.apply(x, lines, weights, spec)
+    return GridEncodeFunction.apply(x, lines, weights, _Launcher.get(spec, x.device, x.dtype))
 
 
 def _check_inputs(x, lines, spec, level_weights) -> torch.Tensor:
@@ -299,22 +300,3 @@ class _Launcher:
             for k in range(1, len(groups)):
                 grad_x = grad_x + grad_x_parts[k]
         return grad_x, grad_lines
-
-
-class _CPGridEncode(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, lines, weights, spec):
-        launcher = _Launcher.get(spec, x.device, x.dtype)
-        out = launcher.forward(x, lines.detach(), weights)
-        ctx.launcher = launcher
-        ctx.save_for_backward(x, lines, weights)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        x, lines, weights = ctx.saved_tensors
-        want_x, want_lines = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        if not (want_x or want_lines):
-            return None, None, None, None
-        grad_x, grad_lines = ctx.launcher.backward(x.detach(), lines.detach(), weights, grad_out, want_x, want_lines)
-        return grad_x, grad_lines, None, None

@@ -20,6 +20,7 @@ import torch
 
 from ..device import init_warp, run_chunks, num_threads, split_range
 from .hashgrid_spec import HashGridSpec
+from .launch import GridEncodeFunction
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
@@ -49,7 +50,7 @@ def hashgrid_encode(
         torch.Size([5, 8])
     """
     weights = _check_inputs(x, table, spec, level_weights)
-    return _HashGridEncode.apply(x, table, weights, spec)
+    return GridEncodeFunction.apply(x, table, weights, _Launcher.get(spec, x.device, x.dtype))
 
 
 def _check_inputs(x, table, spec, level_weights) -> torch.Tensor:
@@ -190,22 +191,3 @@ class _Launcher:
             for k in range(1, len(groups)):
                 grad_x = grad_x + grad_x_parts[k]
         return grad_x, grad_table
-
-
-class _HashGridEncode(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, table, weights, spec):
-        launcher = _Launcher.get(spec, x.device, x.dtype)
-        out = launcher.forward(x, table.detach(), weights)
-        ctx.launcher = launcher
-        ctx.save_for_backward(x, table, weights)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        x, table, weights = ctx.saved_tensors
-        want_x, want_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        if not (want_x or want_table):
-            return None, None, None, None
-        grad_x, grad_table = ctx.launcher.backward(x, table.detach(), weights, grad_out, want_x, want_table)
-        return grad_x, grad_table, None, None

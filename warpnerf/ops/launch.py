@@ -34,6 +34,31 @@ def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) 
     run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
 
 
+class GridEncodeFunction(torch.autograd.Function):
+    """Autograd glue shared by the level-major grid encodings (hash grid, CP lines).
+
+    ``launcher`` owns the Warp work: ``forward(x, params, weights)`` and
+    ``backward(x, params, weights, grad_out, want_x, want_params) -> (grad_x, grad_params)``.
+    """
+
+    @staticmethod
+    def forward(ctx, x, params, weights, launcher):
+        out = launcher.forward(x, params.detach(), weights)
+        ctx.launcher = launcher
+        ctx.save_for_backward(x, params, weights)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, params, weights = ctx.saved_tensors
+        want_x, want_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if not (want_x or want_params):
+            return None, None, None, None
+        grad_x, grad_params = ctx.launcher.backward(x.detach(), params.detach(), weights, grad_out, want_x,
+                                                    want_params)
+        return grad_x, grad_params, None, None
+
+
 def as_warp(t: torch.Tensor, dtype=None):
     """Zero-copy Warp view of ``t`` (copied first if not contiguous), never linked to autograd.
 
