@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from ..device import init_warp, num_threads, run_chunks, split_range
-from .launch import GridEncodeFunction
+from .launch import CachedLauncher, GridEncodeFunction, check_level_weights
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -181,27 +181,11 @@ def _check_inputs(x, lines, spec, level_weights) -> torch.Tensor:
         raise ValueError("cpgrid_encode: x and lines must be contiguous (call .contiguous())")
     if x.numel() and not bool(torch.isfinite(x).all()):
         raise ValueError("cpgrid_encode: x contains NaN or inf")
-    if level_weights is None:
-        return torch.ones(spec.n_levels, dtype=x.dtype, device=x.device)
-    if not isinstance(level_weights, torch.Tensor) or tuple(level_weights.shape) != (spec.n_levels,):
-        raise ValueError(f"cpgrid_encode: level_weights must be a tensor of shape ({spec.n_levels},)")
-    w = level_weights.detach().to(device=x.device, dtype=x.dtype).contiguous()
-    if not bool(((w >= 0) & (w <= 1)).all()):  # also rejects NaN
-        raise ValueError("cpgrid_encode: level weights must lie in [0, 1]")
-    return w
+    return check_level_weights("cpgrid_encode", level_weights, spec.n_levels, x)
 
 
-class _Launcher:
+class _Launcher(CachedLauncher):
     """Per (spec, device, dtype) Warp state: kernels and the small per-level metadata arrays."""
-
-    _cache: dict = {}
-
-    @classmethod
-    def get(cls, spec: CPGridSpec, device: torch.device, dtype: torch.dtype) -> "_Launcher":
-        key = (spec, str(device), dtype)
-        if key not in cls._cache:
-            cls._cache[key] = cls(spec, device, dtype)
-        return cls._cache[key]
 
     def __init__(self, spec: CPGridSpec, device: torch.device, dtype: torch.dtype):
         wp = init_warp()

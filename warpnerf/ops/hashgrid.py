@@ -20,7 +20,7 @@ import torch
 
 from ..device import init_warp, run_chunks, num_threads, split_range
 from .hashgrid_spec import HashGridSpec
-from .launch import GridEncodeFunction
+from .launch import CachedLauncher, GridEncodeFunction, check_level_weights
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
@@ -74,27 +74,11 @@ def _check_inputs(x, table, spec, level_weights) -> torch.Tensor:
         raise ValueError("hashgrid_encode: x and table must be contiguous (call .contiguous())")
     if x.numel() and not bool(torch.isfinite(x).all()):
         raise ValueError("hashgrid_encode: x contains NaN or inf")
-    if level_weights is None:
-        return torch.ones(spec.n_levels, dtype=x.dtype, device=x.device)
-    if not isinstance(level_weights, torch.Tensor) or tuple(level_weights.shape) != (spec.n_levels,):
-        raise ValueError(f"hashgrid_encode: level_weights must be a tensor of shape ({spec.n_levels},)")
-    w = level_weights.detach().to(device=x.device, dtype=x.dtype).contiguous()
-    if not bool(((w >= 0) & (w <= 1)).all()):
-        raise ValueError("hashgrid_encode: level weights must lie in [0, 1]")
-    return w
+    return check_level_weights("hashgrid_encode", level_weights, spec.n_levels, x)
 
 
-class _Launcher:
+class _Launcher(CachedLauncher):
     """Per (spec, device, dtype) Warp state: kernels and the small per-level metadata arrays."""
-
-    _cache: dict = {}
-
-    @classmethod
-    def get(cls, spec: HashGridSpec, device: torch.device, dtype: torch.dtype) -> "_Launcher":
-        key = (spec, str(device), dtype)
-        if key not in cls._cache:
-            cls._cache[key] = cls(spec, device, dtype)
-        return cls._cache[key]
 
     def __init__(self, spec: HashGridSpec, device: torch.device, dtype: torch.dtype):
         wp = init_warp()

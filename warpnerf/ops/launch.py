@@ -34,6 +34,33 @@ def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) 
     run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
 
 
+def check_level_weights(op: str, level_weights, n_levels: int, x: torch.Tensor) -> torch.Tensor:
+    """G²fR level weights for a grid op: all ones when None, else an (L,) tensor in [0, 1]
+    (NaN rejected), returned detached, contiguous, on x's device and dtype."""
+    if level_weights is None:
+        return torch.ones(n_levels, dtype=x.dtype, device=x.device)
+    if not isinstance(level_weights, torch.Tensor) or tuple(level_weights.shape) != (n_levels,):
+        raise ValueError(f"{op}: level_weights must be a tensor of shape ({n_levels},)")
+    w = level_weights.detach().to(device=x.device, dtype=x.dtype).contiguous()
+    if not bool(((w >= 0) & (w <= 1)).all()):  # also rejects NaN
+        raise ValueError(f"{op}: level weights must lie in [0, 1]")
+    return w
+
+
+class CachedLauncher:
+    """Base of the grid ops' launchers: one instance (kernels, metadata arrays) per
+    (launcher class, spec, device, dtype), built on first use."""
+
+    _cache: dict = {}
+
+    @classmethod
+    def get(cls, spec, device: torch.device, dtype: torch.dtype):
+        key = (cls, spec, str(device), dtype)
+        if key not in CachedLauncher._cache:
+            CachedLauncher._cache[key] = cls(spec, device, dtype)
+        return CachedLauncher._cache[key]
+
+
 class GridEncodeFunction(torch.autograd.Function):
     """Autograd glue shared by the level-major grid encodings (hash grid, CP lines).
 
