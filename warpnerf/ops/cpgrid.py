@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from ..device import init_warp, num_threads, run_chunks, split_range
-from .launch import CachedLauncher, GridEncodeFunction, check_level_weights
+from .launch import CachedLauncher, GridEncodeFunction, check_grid_inputs, check_level_weights
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -161,26 +161,7 @@ def cpgrid_encode(
 
 
 def _check_inputs(x, lines, spec, level_weights) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor) or not isinstance(lines, torch.Tensor):
-        raise TypeError("cpgrid_encode: x and lines must be torch tensors")
-    if not isinstance(spec, CPGridSpec):
-        raise TypeError(f"cpgrid_encode: spec must be a CPGridSpec, got {type(spec).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"cpgrid_encode: x must be float32 or float64, got {x.dtype}")
-    if lines.dtype != x.dtype:
-        raise TypeError(f"cpgrid_encode: lines dtype {lines.dtype} differs from x dtype {x.dtype}")
-    if x.device != lines.device:
-        raise ValueError(f"cpgrid_encode: x is on {x.device} but lines is on {lines.device}")
-    if x.device.type not in ("cpu", "cuda"):
-        raise ValueError(f"cpgrid_encode: only cpu and cuda tensors are supported, got {x.device}")
-    if x.dim() != 2 or x.shape[1] != 3:
-        raise ValueError(f"cpgrid_encode: x must have shape (N, 3), got {tuple(x.shape)}")
-    if tuple(lines.shape) != spec.lines_shape:
-        raise ValueError(f"cpgrid_encode: lines must have shape {spec.lines_shape}, got {tuple(lines.shape)}")
-    if not x.is_contiguous() or not lines.is_contiguous():
-        raise ValueError("cpgrid_encode: x and lines must be contiguous (call .contiguous())")
-    if x.numel() and not bool(torch.isfinite(x).all()):
-        raise ValueError("cpgrid_encode: x contains NaN or inf")
+    check_grid_inputs("cpgrid_encode", x, lines, "lines", spec, CPGridSpec, lambda s: (3, s.lines_shape))
     return check_level_weights("cpgrid_encode", level_weights, spec.n_levels, x)
 
 

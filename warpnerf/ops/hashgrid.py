@@ -20,7 +20,7 @@ import torch
 
 from ..device import init_warp, run_chunks, num_threads, split_range
 from .hashgrid_spec import HashGridSpec
-from .launch import CachedLauncher, GridEncodeFunction, check_level_weights
+from .launch import CachedLauncher, GridEncodeFunction, check_grid_inputs, check_level_weights
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
@@ -54,26 +54,8 @@ def hashgrid_encode(
 
 
 def _check_inputs(x, table, spec, level_weights) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor) or not isinstance(table, torch.Tensor):
-        raise TypeError("hashgrid_encode: x and table must be torch tensors")
-    if not isinstance(spec, HashGridSpec):
-        raise TypeError(f"hashgrid_encode: spec must be a HashGridSpec, got {type(spec).__name__}")
-    if x.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"hashgrid_encode: x must be float32 or float64, got {x.dtype}")
-    if table.dtype != x.dtype:
-        raise TypeError(f"hashgrid_encode: table dtype {table.dtype} differs from x dtype {x.dtype}")
-    if x.device != table.device:
-        raise ValueError(f"hashgrid_encode: x is on {x.device} but table is on {table.device}")
-    if x.dim() != 2 or x.shape[1] != spec.dim:
-        raise ValueError(f"hashgrid_encode: x must have shape (N, {spec.dim}), got {tuple(x.shape)}")
-    if tuple(table.shape) != (spec.n_rows, spec.n_features):
-        raise ValueError(
-            f"hashgrid_encode: table must have shape ({spec.n_rows}, {spec.n_features}), got {tuple(table.shape)}"
-        )
-    if not x.is_contiguous() or not table.is_contiguous():
-        raise ValueError("hashgrid_encode: x and table must be contiguous (call .contiguous())")
-    if x.numel() and not bool(torch.isfinite(x).all()):
-        raise ValueError("hashgrid_encode: x contains NaN or inf")
+    check_grid_inputs("hashgrid_encode", x, table, "table", spec, HashGridSpec,
+                      lambda s: (s.dim, (s.n_rows, s.n_features)))
     return check_level_weights("hashgrid_encode", level_weights, spec.n_levels, x)
 
 

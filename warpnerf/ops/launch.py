@@ -34,6 +34,33 @@ def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) 
     run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
 
 
+def check_grid_inputs(op: str, x, params, params_name: str, spec, spec_type: type, shapes) -> None:
+    """Validate a grid op's points ``x`` and learnable ``params``: torch tensors, float32/float64 of
+    one dtype, one cpu or cuda device, the shapes ``shapes(spec) -> (x_dim, params_shape)`` asks for,
+    contiguous, finite x. One-line TypeError/ValueError naming ``op`` before any launch."""
+    if not isinstance(x, torch.Tensor) or not isinstance(params, torch.Tensor):
+        raise TypeError(f"{op}: x and {params_name} must be torch tensors")
+    if not isinstance(spec, spec_type):
+        raise TypeError(f"{op}: spec must be a {spec_type.__name__}, got {type(spec).__name__}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{op}: x must be float32 or float64, got {x.dtype}")
+    if params.dtype != x.dtype:
+        raise TypeError(f"{op}: {params_name} dtype {params.dtype} differs from x dtype {x.dtype}")
+    if x.device != params.device:
+        raise ValueError(f"{op}: x is on {x.device} but {params_name} is on {params.device}")
+    if x.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{op}: only cpu and cuda tensors are supported, got {x.device}")
+    x_dim, params_shape = shapes(spec)
+    if x.dim() != 2 or x.shape[1] != x_dim:
+        raise ValueError(f"{op}: x must have shape (N, {x_dim}), got {tuple(x.shape)}")
+    if tuple(params.shape) != tuple(params_shape):
+        raise ValueError(f"{op}: {params_name} must have shape {tuple(params_shape)}, got {tuple(params.shape)}")
+    if not x.is_contiguous() or not params.is_contiguous():
+        raise ValueError(f"{op}: x and {params_name} must be contiguous (call .contiguous())")
+    if x.numel() and not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{op}: x contains NaN or inf")
+
+
 def check_level_weights(op: str, level_weights, n_levels: int, x: torch.Tensor) -> torch.Tensor:
     """G²fR level weights for a grid op: all ones when None, else an (L,) tensor in [0, 1]
     (NaN rejected), returned detached, contiguous, on x's device and dtype."""
