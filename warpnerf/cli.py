@@ -96,7 +96,7 @@ def _summary(m: dict) -> str:
     parts = [f"PSNR {m['psnr']:.2f} dB", f"SSIM {m['ssim']:.3f}", f"{m['iters']} iters",
              f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
     if "rot_err_deg" in m:
-        parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err x100 {m['trans_err_x100']:.3f}"]
+        parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
     return "; ".join(parts)
 
 
