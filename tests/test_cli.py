@@ -63,7 +63,7 @@ def test_bench_encoding_json_is_measured(model):
 def test_scenes_lists_builtins():
     code, out, _ = run_cli("scenes")
     assert code == 0
-    for name in ("chair", "lamp", "vase"):
+    for name in ("chair", "lamp", "vase", "stand"):
         assert name in out
 
 

@@ -120,6 +120,9 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
         trainer.render_turntable(os.path.join(out_dir, "turntable.gif"), cfg.video_frames, progress)
+    from .trainer import peak_rss_mb
+
+    metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
     metrics["total_seconds"] = time.perf_counter() - t_start
     write_json(os.path.join(out_dir, "metrics.json"), metrics)
     return metrics
