@@ -1,4 +1,4 @@
-"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``.
+"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``render``, ``export``, ``view``.
 
 Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
 User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
@@ -177,6 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
+    from .outputs_cli import add_output_commands  # render, export, view (commands on a finished run)
+
+    add_output_commands(sub)
     return parser
 
 

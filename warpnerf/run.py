@@ -7,7 +7,7 @@ Run folder layout::
     history.json      training curves
     checkpoint.pt     field, occupancy grid and pose corrections (for ``warpnerf eval``)
     renders/          test views (prediction | ground truth) and depth
-    turntable.gif     orbit video
+    turntable.mp4     orbit video (spiral for forward-facing scenes); turntable.gif without imageio-ffmpeg
     training.png      loss / PSNR curves; pose runs add cameras.png and pose_error.png
 """
 
@@ -111,7 +111,7 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     }
     write_json(os.path.join(out_dir, "metrics.json"), metrics)
     write_json(os.path.join(out_dir, "history.json"), trainer.history)
-    from . import plots
+    from . import plots, video
 
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
                                {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
@@ -119,7 +119,7 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
                                title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
-        trainer.render_turntable(os.path.join(out_dir, "turntable.gif"), cfg.video_frames, progress)
+        video.render_run_video(trainer, out_dir, cfg.video_frames, progress)  # turntable.mp4 (.gif without ffmpeg)
     metrics["total_seconds"] = time.perf_counter() - t_start
     write_json(os.path.join(out_dir, "metrics.json"), metrics)
     return metrics

@@ -1,0 +1,53 @@
+"""Command-line parsers of the commands that work on a finished run: ``render``, ``export``, ``view``.
+
+Kept apart from the modules that do the work so ``warpnerf --help`` does not import torch;
+each command imports its module when it runs. Errors the user can fix raise ``UserError``
+(one line, exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", required=True, help="run folder written by 'warpnerf train'")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def add_output_commands(sub) -> None:
+    """Register ``render``, ``export`` and ``view`` on the ``warpnerf`` sub-parser set ``sub``."""
+    p = sub.add_parser("render", help="render a camera path of a trained run to MP4 (GIF without ffmpeg)")
+    _run_args(p)
+    p.add_argument("--path", default="orbit", help="orbit, spiral, test, or a nerfstudio camera_path.json")
+    p.add_argument("--frames", type=int, default=60, help="frames (orbit/spiral; test: at most the test views)")
+    p.add_argument("--out", default=None, help="video file (default RUN/render_<path>.mp4)")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training views")
+    p.add_argument("--depth", action="store_true", help="depth map beside the RGB")
+    p.add_argument("--save-path", default=None, help="also write the cameras as a nerfstudio camera_path.json")
+    p.set_defaults(func=cmd_render)
+
+
+def cmd_render(args) -> int:
+    from .cli import UserError
+    from .video import PathError, load_run, make_path, render_frames, write_camera_path_json, write_video
+
+    if args.fps <= 0 or args.scale <= 0:
+        raise UserError("--fps and --scale must be > 0")
+    if args.path.endswith(".json") and not os.path.isfile(args.path):
+        raise UserError(f"camera path file not found: {args.path}")
+    trainer = load_run(args.run, args.device, progress=not args.quiet)
+    name = os.path.splitext(os.path.basename(args.path))[0]
+    out = args.out or os.path.join(args.run, f"render_{name}.mp4")
+    try:
+        cams = make_path(trainer, args.path, args.frames, args.scale)
+    except PathError as e:
+        raise UserError(str(e)) from e
+    if args.save_path:
+        write_camera_path_json(args.save_path, cams, args.fps)
+    written = write_video(out, render_frames(trainer, cams, args.depth, not args.quiet), args.fps)
+    print(f"{len(cams)} frames ({cams.width}x{cams.height}{' + depth' if args.depth else ''}) written to {written}")
+    return 0
