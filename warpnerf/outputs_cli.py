@@ -30,6 +30,19 @@ def add_output_commands(sub) -> None:
     p.add_argument("--save-path", default=None, help="also write the cameras as a nerfstudio camera_path.json")
     p.set_defaults(func=cmd_render)
 
+    e = sub.add_parser("export", help="export a trained run's geometry: marching-cubes mesh or point cloud (PLY)")
+    _run_args(e)
+    e.add_argument("--what", default="mesh", choices=["mesh", "points"])
+    e.add_argument("--out", default=None, help="PLY file (default RUN/<what>.ply)")
+    e.add_argument("--resolution", type=int, default=256, help="mesh: density samples per axis of the scene box")
+    e.add_argument("--threshold", type=float, default=None,
+                   help="mesh: iso-level, density per scene unit (default: warpnerf.export.DEFAULT_THRESHOLD)")
+    e.add_argument("--scale", type=float, default=0.5, help="points: render resolution relative to the training views")
+    e.add_argument("--min-opacity", type=float, default=0.95, help="points: keep pixels at least this opaque")
+    e.add_argument("--max-points", type=int, default=1_000_000)
+    e.add_argument("--max-views", type=int, default=0, help="points: render at most this many training views (0: all)")
+    e.set_defaults(func=cmd_export)
+
 
 def cmd_render(args) -> int:
     from .cli import UserError
@@ -50,4 +63,31 @@ def cmd_render(args) -> int:
         write_camera_path_json(args.save_path, cams, args.fps)
     written = write_video(out, render_frames(trainer, cams, args.depth, not args.quiet), args.fps)
     print(f"{len(cams)} frames ({cams.width}x{cams.height}{' + depth' if args.depth else ''}) written to {written}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .cli import UserError
+    from .export import DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply
+    from .video import load_run
+
+    if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
+        raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")
+    out = args.out or os.path.join(args.run, f"{args.what}.ply")
+    trainer = load_run(args.run, args.device, progress=not args.quiet)
+    try:
+        if args.what == "mesh":
+            threshold = DEFAULT_THRESHOLD if args.threshold is None else args.threshold
+            verts, faces, colors = extract_mesh(trainer, args.resolution, threshold)
+            write_ply(out, verts, colors, faces)
+            print(f"mesh: {len(verts)} vertices, {len(faces)} faces (iso-level {threshold}) written to {out}")
+        else:
+            points, colors = extract_points(trainer, args.scale, args.min_opacity, args.max_points,
+                                            max_views=args.max_views)
+            if len(points) == 0:
+                raise ExportError(f"no pixel is more opaque than --min-opacity {args.min_opacity}")
+            write_ply(out, points, colors)
+            print(f"points: {len(points)} coloured points written to {out}")
+    except ExportError as e:
+        raise UserError(str(e)) from e
     return 0
