@@ -73,6 +73,9 @@ _TRAIN_FLAGS = [
     ("--eval-every", int, "evaluate every k-th test view"),
     ("--eval-max-views", int, "cap on evaluated test views (0: no cap)"),
     ("--video-frames", int, "turntable frames (0: no video)"),
+    ("--log", str, "none or tensorboard (scalars to RUN/tb; pip install 'warpnerf[log]')"),
+    ("--heldout-every", int, "steps between held-out PSNR renders (0: off)"),
+    ("--lpips-weights", str, "LPIPS(alex) weights file or folder (see docs/outputs.md); default: look locally"),
 ]
 
 

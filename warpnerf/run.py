@@ -82,7 +82,12 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task}; "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}")
     trainer = Trainer(cfg, scene, task, device)
+    from .monitor import Monitor
+
+    monitor = Monitor(trainer)
+    trainer.callbacks.append(monitor)
     trainer.fit(progress)
+    monitor.close()
     torch.save(trainer.state_dict(), os.path.join(out_dir, "checkpoint.pt"))
     t_eval = time.perf_counter()
     results = trainer.evaluate(out_dir, progress)
@@ -93,6 +98,7 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
         "lpips": results["lpips"],
         "iters": cfg.iters,
         "train_seconds": trainer.train_seconds,
+        "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),
         "train_view_ids": trainer.views.ids,
@@ -115,7 +121,9 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
 
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
                                {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
-                                "training batch PSNR (dB)": trainer.history["psnr"]},
+                                "training batch PSNR (dB)": trainer.history["psnr"],
+                                **({"held-out PSNR (dB)": trainer.history["heldout"]} if trainer.history["heldout"] else {}),
+                                "encoding Lipschitz bound L_Psi (eq. 17)": trainer.history["lipschitz"]},
                                title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
