@@ -68,11 +68,23 @@ def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
     return metrics if "total_seconds" in metrics else None
 
 
+def _configure_lpips(cfg: TrainConfig) -> None:
+    """Pick the LPIPS weights evaluation uses (``--lpips-weights``; unusable path: one-line error)."""
+    from . import metrics
+    from .config import ConfigError
+
+    try:
+        metrics.configure_lpips(cfg.lpips_weights)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
 def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     """Train and evaluate one configuration; returns the metrics written to metrics.json."""
     if cfg.threads is not None:
         devmod.set_num_threads(cfg.threads)
     device = devmod.resolve_device(cfg.device)
+    _configure_lpips(cfg)
     t_start = time.perf_counter()
     scene = load_scene_for(cfg, progress)
     task = make_task(cfg)
@@ -146,6 +158,7 @@ def evaluate_run(run_dir: str, progress: bool = True) -> dict:
     cfg = build_config(values.pop("task"), overrides=values)
     cfg.out = run_dir
     device = devmod.resolve_device(cfg.device)
+    _configure_lpips(cfg)
     scene = load_scene_for(cfg, progress)
     task = make_task(cfg)
     trainer = Trainer(cfg, scene, task, device)
