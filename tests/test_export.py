@@ -11,35 +11,7 @@ from warpnerf import export as E  # noqa: E402
 from warpnerf.cli import main  # noqa: E402
 from warpnerf.data.builtin import scene_mesh  # noqa: E402
 
-# small field, coarse marching (64 steps across the diagonal), few rays: ~0.5 s a step on 2 busy cores
-TINY_TOML = """levels = 8
-log2_table_size = 15
-base_resolution = 8
-max_resolution = 256
-hidden = 32
-target_samples = 4096
-batch_rays = 256
-occ_resolution = 32
-occ_warmup = 32
-occ_update_every = 8
-march_steps = 64
-lr = 0.04
-"""
-ITERS = 60
-
-
-@pytest.fixture(scope="module")
-def chair_run(tmp_path_factory):
-    import os
-
-    root = tmp_path_factory.mktemp("export")
-    os.environ["WARPNERF_CACHE"] = str(root / "cache")
-    (root / "tiny.toml").write_text(TINY_TOML)
-    out = root / "run"
-    assert main(["train", "--scene", "chair", "--task", "full", "--builtin-resolution", "32", "--iters", str(ITERS),
-                 "--eval-max-views", "1", "--video-frames", "0", "--out", str(out), "--quiet", "--config",
-                 str(root / "tiny.toml")]) == 0
-    return out
+from chair_run import ITERS, RESOLUTION  # noqa: E402  (the session fixture chair_run is in conftest.py)
 
 
 def test_sphere_mesh_from_an_analytic_density():
@@ -98,7 +70,7 @@ def test_chair_mesh_matches_the_true_mesh(chair_run, tmp_path, capsys):
     b = E.sample_surface(true.points, true.faces, 20000)
     d_ab, d_ba = E.chamfer_distance(a, b)
     chamfer = 0.5 * (d_ab + d_ba)
-    print(f"chair mesh after {ITERS} steps at 32 px: bbox error {err.max():.3f} of the size, "
+    print(f"chair mesh after {ITERS} steps at {RESOLUTION} px: bbox error {err.max():.3f} of the size, "
           f"Chamfer {chamfer:.4f} scene units (pred->true {d_ab:.4f}, true->pred {d_ba:.4f})")
     assert chamfer < 0.1  # 4.5 % of the chair's size; measured values are printed above
     # vertex colours come from the field: the chair is brown/red on white, not white

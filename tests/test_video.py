@@ -7,24 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from chair_run import RESOLUTION, VIDEO_FRAMES  # the session fixture chair_run is in conftest.py
 from warpnerf.cameras import look_at
 from warpnerf.cli import main
 from warpnerf.video import (CameraPath, look_target, make_path, orbit_path, read_camera_path_json, read_video,
                            scene_up, write_camera_path_json, write_video, have_ffmpeg)
-
-# a small field so the test run takes seconds (written as a --config file: not every key is a flag)
-TINY_TOML = """levels = 8
-log2_table_size = 14
-base_resolution = 8
-max_resolution = 128
-hidden = 32
-target_samples = 8192
-batch_rays = 512
-occ_resolution = 32
-occ_warmup = 16
-occ_update_every = 8
-march_steps = 128
-"""
 
 
 def _hemisphere(n=12, r=4.0, seed=0):
@@ -83,33 +70,18 @@ def test_write_video_decodes_back(tmp_path, ext):
     assert np.allclose(means, [40 * k for k in range(5)], atol=3)  # lossy H.264 on flat colours: within 3 levels
 
 
-@pytest.fixture(scope="module")
-def chair_run(tmp_path_factory):
-    """A run folder of the built-in chair at 32 px, 20 steps (a coarse blob, but a real run)."""
-    import os
-
-    root = tmp_path_factory.mktemp("video")
-    os.environ["WARPNERF_CACHE"] = str(root / "cache")
-    out = root / "run"
-    (root / "tiny.toml").write_text(TINY_TOML)
-    code = main(["train", "--scene", "chair", "--task", "full", "--builtin-resolution", "32", "--iters", "20",
-                 "--eval-max-views", "1", "--video-frames", "4", "--out", str(out), "--quiet", "--config", str(root / "tiny.toml")])
-    assert code == 0
-    return out
-
-
 def test_run_writes_mp4_turntable_and_render_command(chair_run, tmp_path, capsys):
     run = chair_run
     turntable = run / ("turntable.mp4" if have_ffmpeg() else "turntable.gif")
     frames = read_video(str(turntable))
-    assert len(frames) == 4 and frames[0].shape[:2] == (32, 32)
+    assert len(frames) == VIDEO_FRAMES and frames[0].shape[:2] == (RESOLUTION, RESOLUTION)
     out = tmp_path / "orbit.mp4"
     assert main(["render", "--run", str(run), "--path", "orbit", "--frames", "6", "--depth", "--out", str(out),
                  "--save-path", str(tmp_path / "cams.json"), "--quiet"]) == 0
     written = out if have_ffmpeg() else out.with_suffix(".gif")
     frames = read_video(str(written))
     assert len(frames) == 6
-    assert frames[0].shape[:2] == (32, 64)  # depth beside RGB
+    assert frames[0].shape[:2] == (RESOLUTION, 2 * RESOLUTION)  # depth beside RGB
     # N distinct frames: the orbit moves the camera, so consecutive frames differ
     diffs = [np.abs(frames[i].astype(int) - frames[i + 1].astype(int)).mean() for i in range(5)]
     assert min(diffs) > 0.5, diffs
@@ -134,5 +106,5 @@ def test_spiral_path_of_a_run(chair_run):
 
     trainer = load_run(str(chair_run), "cpu")
     cams = make_path(trainer, "spiral", 8, scale=0.5)
-    assert len(cams) == 8 and (cams.height, cams.width) == (16, 16)
+    assert len(cams) == 8 and (cams.height, cams.width) == (RESOLUTION // 2, RESOLUTION // 2)
     assert cams.focal == pytest.approx(trainer.views.focal * 0.5)

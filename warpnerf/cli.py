@@ -75,6 +75,7 @@ _TRAIN_FLAGS = [
     ("--video-frames", int, "turntable frames (0: no video)"),
     ("--log", str, "none or tensorboard (scalars to RUN/tb; pip install 'warpnerf[log]')"),
     ("--heldout-every", int, "steps between held-out PSNR renders (0: off)"),
+    ("--checkpoint-every", int, "steps between checkpoint saves, for 'warpnerf view' on a running training (0: end)"),
     ("--lpips-weights", str, "LPIPS(alex) weights file or folder (see docs/outputs.md); default: look locally"),
 ]
 

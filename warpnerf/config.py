@@ -90,6 +90,7 @@ class TrainConfig:
     log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
     heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
+    checkpoint_every: int = 0  # steps between checkpoint.pt saves during training ('warpnerf view' follows them); 0 = end only
     lpips_weights: str = ""  # LPIPS(alex) weights: full state-dict file or folder (see metrics.py); "" = auto
 
     def run_dir(self) -> str:

@@ -43,6 +43,15 @@ def add_output_commands(sub) -> None:
     e.add_argument("--max-views", type=int, default=0, help="points: render at most this many training views (0: all)")
     e.set_defaults(func=cmd_export)
 
+    v = sub.add_parser("view", help="live viewer of a run in the browser (viser); follows a training run's checkpoints")
+    _run_args(v)
+    v.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0: reachable from other machines)")
+    v.add_argument("--port", type=int, default=8080)
+    v.add_argument("--preview-height", type=int, default=160, help="rendered image height, pixels")
+    v.add_argument("--wait", type=float, default=0.0,
+                   help="seconds to wait for checkpoint.pt of a training run that has not saved one yet")
+    v.set_defaults(func=cmd_view)
+
 
 def cmd_render(args) -> int:
     from .cli import UserError
@@ -90,4 +99,22 @@ def cmd_export(args) -> int:
             print(f"points: {len(points)} coloured points written to {out}")
     except ExportError as e:
         raise UserError(str(e)) from e
+    return 0
+
+
+def cmd_view(args) -> int:
+    from .cli import UserError
+
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise UserError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
+    from .viewer import RunViewer, serve, wait_for_checkpoint
+
+    if args.wait > 0 and not wait_for_checkpoint(args.run, args.wait):
+        raise UserError(f"no checkpoint.pt appeared in {args.run} within {args.wait:.0f} s")
+    viewer = RunViewer(args.run, args.device, args.preview_height)
+    print(f"warpnerf view: http://{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:{args.port} "
+          f"(step {viewer.step}; Ctrl-C to stop)", flush=True)
+    serve(viewer, args.host, args.port)
     return 0
