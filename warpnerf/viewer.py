@@ -148,6 +148,7 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
     except ImportError:
         raise RuntimeError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
 
+    stop = stop or threading.Event()
     server = viser.ViserServer(host=host, port=port, verbose=False)
     c2w0 = viewer.initial_camera()
     up = viewer.trainer.train_c2w[:, :, 1].mean(0).cpu().double().numpy()
@@ -161,11 +162,14 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
     status = server.gui.add_markdown(f"**{os.path.basename(os.path.abspath(viewer.run_dir))}** step {viewer.step}")
 
     def update(client) -> None:
+        if stop.is_set():  # shutting down: the connection is closing
+            return
         cam = client.camera
         try:
             img = viewer.render_viser_camera(cam.position, cam.wxyz, cam.fov, cam.aspect)
         except Exception as e:  # a render error must not kill the server thread
-            print(f"warpnerf view: render failed: {e}", flush=True)
+            if not stop.is_set():
+                print(f"warpnerf view: render failed: {e}", flush=True)
             return
         viewer.renders += 1
         client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
@@ -177,7 +181,6 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
         def _(_cam) -> None:
             update(client)
 
-    stop = stop or threading.Event()
     while not stop.wait(poll_seconds):
         if viewer.reload_if_changed():
             status.content = f"**{os.path.basename(os.path.abspath(viewer.run_dir))}** step {viewer.step} (reloaded)"
