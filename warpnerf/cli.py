@@ -1,4 +1,4 @@
-"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``.
+"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``render``, ``export``, ``view``.
 
 Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
 User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
@@ -73,6 +73,10 @@ _TRAIN_FLAGS = [
     ("--eval-every", int, "evaluate every k-th test view"),
     ("--eval-max-views", int, "cap on evaluated test views (0: no cap)"),
     ("--video-frames", int, "turntable frames (0: no video)"),
+    ("--log", str, "none or tensorboard (scalars to RUN/tb; pip install 'warpnerf[log]')"),
+    ("--heldout-every", int, "steps between held-out PSNR renders (0: off)"),
+    ("--checkpoint-every", int, "steps between checkpoint saves, for 'warpnerf view' on a running training (0: end)"),
+    ("--lpips-weights", str, "LPIPS(alex) weights file or folder (see docs/outputs.md); default: look locally"),
 ]
 
 
@@ -177,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
+    from .outputs_cli import add_output_commands  # render, export, view (commands on a finished run)
+
+    add_output_commands(sub)
     return parser
 
 

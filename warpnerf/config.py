@@ -91,6 +91,12 @@ class TrainConfig:
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     threads: Optional[int] = None  # CPU threads for Warp launches
     log_every: int = 50  # steps between progress-bar metric refreshes
+    # --- monitoring and metrics (warpnerf/monitor.py, warpnerf/metrics.py) ---
+    log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps
+    heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
+    heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
+    checkpoint_every: int = 0  # steps between checkpoint.pt saves during training ('warpnerf view' follows them); 0 = end only
+    lpips_weights: str = ""  # LPIPS(alex) weights: full state-dict file or folder (see metrics.py); "" = auto
 
     def run_dir(self) -> str:
         if self.out:
@@ -180,5 +186,7 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"lr_warmup must be >= 0, got {cfg.lr_warmup}")
     if cfg.sample_budget < cfg.max_samples_per_ray:
         raise ConfigError(f"sample_budget ({cfg.sample_budget}) must be >= max_samples_per_ray ({cfg.max_samples_per_ray})")
+    if cfg.log not in ("none", "tensorboard"):
+        raise ConfigError(f"log must be none or tensorboard, got '{cfg.log}'")
     if cfg.eval_every < 1:
         raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")

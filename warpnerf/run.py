@@ -7,7 +7,7 @@ Run folder layout::
     history.json      training curves
     checkpoint.pt     field, occupancy grid and pose corrections (for ``warpnerf eval``)
     renders/          test views (prediction | ground truth) and depth
-    turntable.gif     orbit video
+    turntable.mp4     orbit video (spiral for forward-facing scenes); turntable.gif without imageio-ffmpeg
     training.png      loss / PSNR curves; pose runs add cameras.png and pose_error.png
 """
 
@@ -68,11 +68,23 @@ def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
     return metrics if "total_seconds" in metrics else None
 
 
+def _configure_lpips(cfg: TrainConfig) -> None:
+    """Pick the LPIPS weights evaluation uses (``--lpips-weights``; unusable path: one-line error)."""
+    from . import metrics
+    from .config import ConfigError
+
+    try:
+        metrics.configure_lpips(cfg.lpips_weights)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
 def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     """Train and evaluate one configuration; returns the metrics written to metrics.json."""
     if cfg.threads is not None:
         devmod.set_num_threads(cfg.threads)
     device = devmod.resolve_device(cfg.device)
+    _configure_lpips(cfg)
     t_start = time.perf_counter()
     scene = load_scene_for(cfg, progress)
     task = make_task(cfg)
@@ -82,7 +94,12 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task}; "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}")
     trainer = Trainer(cfg, scene, task, device)
+    from .monitor import Monitor
+
+    monitor = Monitor(trainer)
+    trainer.callbacks.append(monitor)
     trainer.fit(progress)
+    monitor.close()
     torch.save(trainer.state_dict(), os.path.join(out_dir, "checkpoint.pt"))
     t_eval = time.perf_counter()
     results = trainer.evaluate(out_dir, progress)
@@ -93,6 +110,7 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
         "lpips": results["lpips"],
         "iters": cfg.iters,
         "train_seconds": trainer.train_seconds,
+        "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),
         "train_view_ids": trainer.views.ids,
@@ -111,15 +129,17 @@ def run_training(cfg: TrainConfig, progress: bool = True) -> dict:
     }
     write_json(os.path.join(out_dir, "metrics.json"), metrics)
     write_json(os.path.join(out_dir, "history.json"), trainer.history)
-    from . import plots
+    from . import plots, video
 
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
                                {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
-                                "training batch PSNR (dB)": trainer.history["psnr"]},
+                                "training batch PSNR (dB)": trainer.history["psnr"],
+                                **({"held-out PSNR (dB)": trainer.history["heldout"]} if trainer.history["heldout"] else {}),
+                                "encoding Lipschitz bound L_Psi (eq. 17)": trainer.history["lipschitz"]},
                                title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
-        trainer.render_turntable(os.path.join(out_dir, "turntable.gif"), cfg.video_frames, progress)
+        video.render_run_video(trainer, out_dir, cfg.video_frames, progress)  # turntable.mp4 (.gif without ffmpeg)
     from .trainer import peak_rss_mb
 
     metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
@@ -141,6 +161,7 @@ def evaluate_run(run_dir: str, progress: bool = True) -> dict:
     cfg = build_config(values.pop("task"), overrides=values)
     cfg.out = run_dir
     device = devmod.resolve_device(cfg.device)
+    _configure_lpips(cfg)
     scene = load_scene_for(cfg, progress)
     task = make_task(cfg)
     trainer = Trainer(cfg, scene, task, device)

@@ -70,6 +70,7 @@ class Trainer:
         self.lr_warmup = min(cfg.lr_warmup, cfg.iters // 10)
         self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": []}
         self.train_seconds = 0.0
+        self.callbacks: list = []  # called as cb(trainer, step, stats) after every step (warpnerf.monitor)
         task.setup(self)
 
     # --- training ---------------------------------------------------------------------------
@@ -173,6 +174,8 @@ class Trainer:
                 bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{psnr:.2f}", rays=self.n_rays,
                                 spr=f"{stats['samples_per_ray']:.0f}", occ=f"{self.occupancy.occupied_fraction():.3f}",
                                 lv=self.schedule.active_levels(step), **extra)
+            for callback in self.callbacks:
+                callback(self, step, stats)
         self.train_seconds = time.perf_counter() - t0
 
     # --- evaluation -------------------------------------------------------------------------
