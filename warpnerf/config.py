@@ -229,7 +229,7 @@ def _coerce(name: str, value: Any, source: str) -> Any:
 def check_choice(name: str, value: Any) -> None:
     """Raise ConfigError unless ``value`` is one of :data:`CHOICES`'s names for field ``name``."""
     if name in CHOICES and value not in CHOICES[name]:
-        raise ConfigError(f"unknown {name} '{value}': expected one of {', '.join(CHOICES[name])}")
+        raise ConfigError(f"unknown {name} '{value}': {name} must be one of {', '.join(CHOICES[name])}")
 
 
 def load_toml(path: str) -> dict:
