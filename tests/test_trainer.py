@@ -63,7 +63,6 @@ def test_refine_poses_recovers_perturbed_test_poses(trained_full):
     trainer.cfg.pose_refine_steps, trainer.cfg.pose_lr, trainer.cfg.pose_lr_final = 100, 3e-3, 1e-4
     refined = trainer.refine_poses(start, views, rays_per_step=512)
     before, after = rotation_error_deg(start, gt), rotation_error_deg(refined, gt)
-    print(before, after)
     assert (after[:2] < 0.5 * before[:2]).all(), (before, after)
     assert after[2] < 1.0, after  # the exact pose stays put (32-pixel images: 1 px is ~1.5 deg)
     assert all(p.requires_grad for p in trainer.field.parameters())  # the field is unfrozen afterwards
@@ -81,7 +80,18 @@ def test_g2fr_masks_levels_early():
     t = make_trainer(iters=100, g2fr=True, g2fr_beta=0.5)
     assert t.schedule.active_levels(0) == 1
     assert t.schedule.active_levels(60) == 8
-    t.train_step(0)  # a step with only the coarsest level active runs
+    # step 0: the encoder receives the schedule's weights (coarsest level only), so the Adam step
+    # moves level 1's table rows and leaves every masked level's rows exactly as initialised
+    encoder, seen = t.field.encoder, []
+    forward = encoder.forward
+    encoder.forward = lambda x, level_weights=None: seen.append(level_weights) or forward(x, level_weights)
+    table0 = encoder.table.detach().clone()
+    t.train_step(0)
+    assert seen and all(torch.equal(w.cpu(), t.schedule(0)) for w in seen)
+    assert t.schedule(0).tolist() == [1.0] + [0.0] * 7
+    level1 = encoder.spec.offsets[1]
+    assert not torch.equal(encoder.table[:level1], table0[:level1])
+    assert torch.equal(encoder.table[level1:].detach(), table0[level1:])
 
 
 def test_pose_task_reduces_rotation_error():

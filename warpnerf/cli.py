@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 
+from .cli_config import add_config_flags
 from .config import MODELS
 
 
@@ -49,46 +50,12 @@ def cmd_bench(args) -> int:
     raise UserError(f"unknown benchmark '{args.what}'")
 
 
-# train flags mirrored from TrainConfig; None means "not given" so presets and files keep their values
-_TRAIN_FLAGS = [
-    ("--scene", str, "scene name: a built-in (see 'warpnerf scenes') or a dataset scene under --data-root"),
-    ("--data-root", str, "dataset folder (default: $WARPNERF_DATA)"),
-    ("--iters", int, "training steps"),
-    ("--out", str, "run folder (default runs/<scene>_<task>[_g2fr])"),
-    ("--seed", int, "random seed (views, noise, sampling)"),
-    ("--model", str, "grid encoding: ngp (hash grid) or mtrf (multi-resolution CP, the paper's Mtrf)"),
-    ("--downscale", int, "integer image downscale"),
-    ("--builtin-resolution", int, "image size of built-in scenes"),
-    ("--g2fr-beta", float, "fraction of training over which G2fR switches levels on"),
-    ("--g2fr-mask", str, "G2fR mask shape: cosine or binary"),
-    ("--n-views", int, "fewshot: number of training views"),
-    ("--views", str, "fewshot: named view list (freenerf8) or comma-separated ids"),
-    ("--pose-noise", float, "pose: se(3) noise sigma (default 0.15 synthetic, 0.01 real)"),
-    ("--pose-noise-rot", float, "pose: rotation noise sigma (overrides --pose-noise)"),
-    ("--pose-noise-trans", float, "pose: translation noise sigma (overrides --pose-noise)"),
-    ("--lr", float, "learning rate of grid and MLPs"),
-    ("--batch-rays", int, "initial rays per step"),
-    ("--target-samples", int, "samples per step the ray count adapts to"),
-    ("--log2-table-size", int, "hash table size T = 2^k"),
-    ("--eval-every", int, "evaluate every k-th test view"),
-    ("--eval-max-views", int, "cap on evaluated test views (0: no cap)"),
-    ("--video-frames", int, "turntable frames (0: no video)"),
-    ("--log", str, "none or tensorboard (scalars to RUN/tb; pip install 'warpnerf[log]')"),
-    ("--heldout-every", int, "steps between held-out PSNR renders (0: off)"),
-    ("--checkpoint-every", int, "steps between checkpoint saves, for 'warpnerf view' on a running training (0: end)"),
-    ("--lpips-weights", str, "LPIPS(alex) weights file or folder (see docs/outputs.md); default: look locally"),
-]
-
-
 def cmd_train(args) -> int:
+    from .cli_config import config_overrides
     from .config import build_config
     from .run import run_training
 
-    overrides = {flag.lstrip("-").replace("-", "_"): getattr(args, flag.lstrip("-").replace("-", "_"))
-                 for flag, _, _ in _TRAIN_FLAGS}
-    overrides["g2fr"] = args.g2fr
-    overrides["device"] = args.device
-    overrides["threads"] = args.threads
+    overrides = config_overrides(args)  # None = not given: the preset or --config file keeps its value
     cfg = build_config(args.task, args.config, overrides)
     metrics = run_training(cfg, progress=not args.quiet)
     print(_summary(metrics))
@@ -136,15 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show full tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it")
-    t.add_argument("--task", default="full", choices=["full", "fewshot", "pose"])
+    t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it",
+                       epilog="Config flags not given keep the value of --config FILE, else of the task preset "
+                              "(configs/<task>.toml), else the default shown.")
     t.add_argument("--config", default=None, help="TOML file overriding the task preset")
-    for flag, typ, help_text in _TRAIN_FLAGS:
-        t.add_argument(flag, type=typ, default=None, help=help_text)
-    t.add_argument("--g2fr", action=argparse.BooleanOptionalAction, default=None,
-                   help="G2fR coarse-to-fine level mask (paper eq. 15)")
+    add_config_flags(t)  # one flag per TrainConfig field (warpnerf/cli_config.py)
+    t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
     t.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_device(t)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="re-evaluate a finished run folder")

@@ -2,15 +2,30 @@
 
 Precedence: dataclass defaults < task preset (``configs/<task>.toml``) < ``--config FILE`` <
 command-line flags. Unknown keys are an error that names the key and the file.
+
+The dataclass is the single source of truth: each field's annotation gives its type (files are
+checked against it, :func:`field_type`), its trailing comment is its help text
+(:func:`field_help`), :data:`CHOICES` names the registries its values come from, and
+:mod:`warpnerf.cli_config` turns all of that into the ``warpnerf train`` flags.
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import importlib
+import inspect
+import io
 import os
 import sys
+import textwrap
+import tokenize
+import types
+import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Optional
+from typing import Any, Optional, Union
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -20,6 +35,39 @@ else:  # pragma: no cover
 
 # grid encodings a field can use: Instant-NGP's hash grid and the paper's multi-resolution CP ("Mtrf")
 MODELS = ("ngp", "mtrf")
+
+# where monitor.py sends its scalars
+LOG_MODES = ("none", "tensorboard")
+
+# G²fR beta: levels are switched on over the first beta * T steps (paper eq. 15). The paper gives
+# no value; 0.5 is what the few-shot and pose presets were tuned with. This is the one default:
+# TrainConfig, freq_mask.G2fRSchedule and the spectrum experiments all read it from here.
+G2FR_BETA = 0.5
+
+
+class Registry(Sequence):
+    """The names of a registry that lives in a module too heavy to import for ``--help``.
+
+    ``Registry("warpnerf.tasks", "TASKS")`` behaves like ``tuple(warpnerf.tasks.TASKS)`` but imports
+    the module (torch) only when first read, so the CLI's choices and :func:`validate` use the very
+    registry the code dispatches on without slowing ``warpnerf --help``.
+    """
+
+    def __init__(self, module: str, attr: str):
+        self.module, self.attr = module, attr
+
+    @functools.cached_property
+    def names(self) -> tuple:
+        return tuple(getattr(importlib.import_module(self.module), self.attr))
+
+    def __getitem__(self, i):
+        return self.names[i]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __repr__(self) -> str:
+        return f"Registry({self.module}.{self.attr})"
 
 
 def exp_decay(start: float, end: float, frac: float) -> float:
@@ -34,12 +82,12 @@ class ConfigError(ValueError):
 @dataclass
 class TrainConfig:
     # --- what to train ---
-    scene: str = "chair"  # built-in scene name, or a dataset scene under data_root
-    data_root: Optional[str] = None  # dataset folder; default: $WARPNERF_DATA
-    task: str = "full"  # full | fewshot | pose
+    scene: str = "chair"  # built-in scene name (see 'warpnerf scenes'), or a dataset scene under data_root
+    data_root: Optional[str] = None  # dataset folder (unset: $WARPNERF_DATA)
+    task: str = "full"  # what to train: full (all views), fewshot (n_views views), pose (noisy poses refined)
     model: str = "ngp"  # grid encoding: ngp (Instant-NGP hash grid) | mtrf (multi-resolution CP, paper's Mtrf)
     downscale: int = 1  # integer image downscale applied at load time
-    builtin_resolution: Optional[int] = None  # image size of built-in scenes (None: generator default)
+    builtin_resolution: Optional[int] = None  # image size of built-in scenes (unset: the generator's default)
     # --- optimisation ---
     iters: int = 2000  # training steps
     batch_rays: int = 4096  # rays per step at the start; adapted to keep target_samples
@@ -51,12 +99,12 @@ class TrainConfig:
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     # --- G²fR (paper eq. 15) ---
     g2fr: bool = False  # mask grid levels coarse to fine
-    g2fr_beta: float = 0.4  # fraction of training over which levels are switched on
-    g2fr_mask: str = "cosine"  # cosine | binary
+    g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on
+    g2fr_mask: str = "cosine"  # level ramp: cosine (BARF) | binary (on at the end of its ramp)
     # --- hash grid and MLPs ---
-    levels: int = 16  # L
-    features: int = 2  # F per level
-    log2_table_size: int = 19  # T = 2^k
+    levels: int = 16  # grid levels L
+    features: int = 2  # features F per grid level
+    log2_table_size: int = 19  # k: hash table rows per level T = 2^k
     base_resolution: int = 16  # points per axis of the coarsest level
     max_resolution: int = 2048  # points per axis of the finest level (over the scene box)
     cp_rank: int = 8  # mtrf: CP components R per level (output L*R features)
@@ -69,14 +117,14 @@ class TrainConfig:
     occ_update_every: int = 16  # steps between occupancy updates
     march_steps: int = 1024  # ray-marching steps across the box diagonal (instant-ngp: 1024)
     render_step: float = 0.0  # explicit ray-marching step in scene units; 0 = diagonal / march_steps
-    max_samples_per_ray: int = 1024
+    max_samples_per_ray: int = 1024  # cap on samples kept per ray when marching
     sample_budget: int = 262144  # hard cap on packed samples per training step and per render chunk (memory)
     memory_budget_mb: int = 4096  # stop with a clear error when the process's peak memory exceeds this
     learn_guard: bool = True  # stop when the loss stays at the background-only level after warm-up
     # --- tasks ---
     n_views: int = 10  # fewshot: number of training views
     views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids
-    pose_noise: Optional[float] = None  # pose: se(3) noise sigma (None: 0.15 synthetic, 0.01 real)
+    pose_noise: Optional[float] = None  # pose: se(3) noise sigma (unset: 0.15 synthetic, 0.01 real)
     pose_noise_rot: Optional[float] = None  # pose: rotation sigma, overrides pose_noise
     pose_noise_trans: Optional[float] = None  # pose: translation sigma, overrides pose_noise
     pose_lr: float = 1e-3  # pose: Adam lr of the se(3) corrections
@@ -86,13 +134,13 @@ class TrainConfig:
     eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
     video_frames: int = 40  # turntable frames (0 = no video)
-    out: str = ""  # run folder; default runs/<scene>_<task>[_g2fr]
-    seed: int = 0
-    device: str = "auto"  # auto | cpu | cuda | cuda:N
-    threads: Optional[int] = None  # CPU threads for Warp launches
+    out: str = ""  # run folder ('': runs/<scene>_<task>[_g2fr])
+    seed: int = 0  # random seed (views, pose noise, ray sampling, initialisation)
+    device: str = "auto"  # auto (cuda if Warp sees one, else cpu) | cpu | cuda | cuda:N
+    threads: Optional[int] = None  # CPU threads for Warp launches (unset: $WARPNERF_THREADS or min(2, cores))
     log_every: int = 50  # steps between progress-bar metric refreshes
     # --- monitoring and metrics (warpnerf/monitor.py, warpnerf/metrics.py) ---
-    log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps
+    log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps (pip install 'warpnerf[log]')
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
     heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
     checkpoint_every: int = 0  # steps between checkpoint.pt saves during training ('warpnerf view' follows them); 0 = end only
@@ -107,25 +155,81 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
 
+# where each choice-valued field's names come from: the registries the code dispatches on
+CHOICES: dict[str, Sequence] = {
+    "task": Registry("warpnerf.tasks", "TASKS"),
+    "model": MODELS,
+    "g2fr_mask": Registry("warpnerf.freq_mask", "MASK_MODES"),
+    "log": LOG_MODES,
+}
+
+
 def _field_types() -> dict[str, Any]:
     return {f.name: f for f in fields(TrainConfig)}
 
 
+@functools.lru_cache(maxsize=None)
+def _type_hints() -> dict[str, Any]:
+    return typing.get_type_hints(TrainConfig)
+
+
+def field_type(name: str) -> tuple[type, bool]:
+    """``(type, optional)`` of a TrainConfig field from its annotation.
+
+    >>> field_type("iters")
+    (<class 'int'>, False)
+    >>> field_type("pose_noise")
+    (<class 'float'>, True)
+    """
+    hint = _type_hints()[name]
+    if typing.get_origin(hint) in (Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) != 1 or len(typing.get_args(hint)) != 2:
+            raise TypeError(f"TrainConfig.{name}: only Optional[X] unions are supported, got {hint}")
+        return args[0], True
+    return hint, False
+
+
+@functools.lru_cache(maxsize=None)
+def field_help() -> dict[str, str]:
+    """Help text of every TrainConfig field: ``metadata["help"]`` if set, else its trailing comment.
+
+    >>> field_help()["iters"]
+    'training steps'
+    """
+    comments: dict[int, str] = {}
+    names: dict[str, int] = {}
+    try:
+        src = textwrap.dedent(inspect.getsource(TrainConfig))
+    except (OSError, TypeError):  # no source shipped: metadata only
+        src = ""
+    if src:
+        for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+            if tok.type == tokenize.COMMENT:
+                comments[tok.start[0]] = tok.string.lstrip("#").strip()
+        for node in ast.parse(src).body[0].body:
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                names[node.target.id] = node.end_lineno
+    return {f.name: f.metadata.get("help") or comments.get(names.get(f.name, -1), "") for f in fields(TrainConfig)}
+
+
 def _coerce(name: str, value: Any, source: str) -> Any:
-    """Check a value from a file against the dataclass field type."""
-    f = _field_types()[name]
-    default = f.default
+    """Check a value from a file against the field's annotated type (ints are accepted as floats)."""
     if value is None:
         return None
-    kinds = {bool: bool, int: int, float: (int, float), str: str}
-    typ = type(default) if default is not None else None
-    ann = str(f.type)
-    if typ is None:  # Optional[...]: infer from the annotation text
-        typ = int if "int" in ann else float if "float" in ann else str
-    want = kinds.get(typ, typ)
-    if typ is int and isinstance(value, bool) or typ is float and isinstance(value, bool) or not isinstance(value, want):
+    typ, _ = field_type(name)
+    is_bool = isinstance(value, bool)
+    if typ is float and isinstance(value, int) and not is_bool:
+        value = float(value)
+    if not isinstance(value, typ) or is_bool and typ is not bool:
         raise ConfigError(f"{source}: key '{name}' must be {typ.__name__}, got {value!r}")
-    return float(value) if typ is float else value
+    return value
+
+
+def check_choice(name: str, value: Any) -> None:
+    """Raise ConfigError unless ``value`` is one of :data:`CHOICES`'s names for field ``name``."""
+    if name in CHOICES and value not in CHOICES[name]:
+        raise ConfigError(f"unknown {name} '{value}': {name} must be one of {', '.join(CHOICES[name])}")
 
 
 def load_toml(path: str) -> dict:
@@ -174,19 +278,15 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
     if cfg.batch_rays < 1 or cfg.target_samples < 1:
         raise ConfigError("batch_rays and target_samples must be >= 1")
-    if cfg.g2fr_mask not in ("cosine", "binary"):
-        raise ConfigError(f"g2fr_mask must be cosine or binary, got '{cfg.g2fr_mask}'")
+    for name in ("model", "g2fr_mask", "log"):  # task: tasks.get_task names the choices
+        check_choice(name, getattr(cfg, name))
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
-    if cfg.model not in MODELS:
-        raise ConfigError(f"unknown model '{cfg.model}': expected one of {', '.join(MODELS)}")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
     if cfg.lr_warmup < 0:
         raise ConfigError(f"lr_warmup must be >= 0, got {cfg.lr_warmup}")
     if cfg.sample_budget < cfg.max_samples_per_ray:
         raise ConfigError(f"sample_budget ({cfg.sample_budget}) must be >= max_samples_per_ray ({cfg.max_samples_per_ray})")
-    if cfg.log not in ("none", "tensorboard"):
-        raise ConfigError(f"log must be none or tensorboard, got '{cfg.log}'")
     if cfg.eval_every < 1:
         raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")

@@ -21,6 +21,9 @@ import math
 
 import torch
 
+from .config import G2FR_BETA
+
+# the level ramps this module implements; the config's choices and checks read this registry
 MASK_MODES = ("cosine", "binary")
 
 
@@ -58,7 +61,7 @@ def g2fr_weights(step: int, total_steps: int, n_levels: int, beta: float, mode: 
 class G2fRSchedule:
     """Callable schedule: ``schedule(step) -> (n_levels,) weights``; all ones when disabled."""
 
-    def __init__(self, n_levels: int, total_steps: int, beta: float = 0.1, mode: str = "cosine", enabled: bool = True):
+    def __init__(self, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine", enabled: bool = True):
         # validate once, up front, so a bad config fails before training starts
         g2fr_tau(0, total_steps, n_levels, beta)
         g2fr_level_weight(2, 0.0, mode)

@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from .config import G2FR_BETA
 from .freq_mask import G2fRSchedule
 from .encoders import HashGridEncoder, PositionalEncoder
 from .ops.hashgrid_spec import HashGridSpec
@@ -400,7 +401,7 @@ class FitConfig:
     init_scale: float = 1e-4  # table init U(-a, a), Instant-NGP's choice
     # G²fR mask (paper eq. 15)
     g2fr: bool = True  # apply the mask; False trains all levels from step 0
-    beta: float = 0.5  # fraction of training over which levels are switched on
+    beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     mask_mode: str = "cosine"  # "cosine" (BARF ramp) or "binary"
     # positional encoding baseline
     pe_n_freqs: int = 7  # frequencies 2^k·π rad, k < n: 0.5 … 32 cycles per unit length

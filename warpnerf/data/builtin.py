@@ -33,7 +33,9 @@ import time
 import uuid
 
 import numpy as np
+import torch
 
+from warpnerf import cameras
 from warpnerf.data.builtin_meshes import SCENES, SceneMesh
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.scene import Scene
@@ -71,20 +73,14 @@ def scene_mesh(name: str) -> SceneMesh:
 
 
 def look_at(eyes: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """(N, 3, 4) OpenGL camera-to-world matrices of cameras at ``eyes`` (N, 3) looking at ``target``.
+    """(N, 3, 4) float32 OpenGL camera-to-world matrices of cameras at ``eyes`` (N, 3) looking at ``target``.
 
-    No roll: the camera x axis is horizontal (as in Blender's NeRF-synthetic renders).
+    No roll: the camera x axis is horizontal (as in Blender's NeRF-synthetic renders). The numpy face
+    of :func:`warpnerf.cameras.look_at` (computed in float64), so both treat a camera looking along
+    ``up`` the same way.
     """
-    eyes = np.asarray(eyes, np.float64)
-    back = eyes - np.asarray(target, np.float64)
-    back /= np.linalg.norm(back, axis=-1, keepdims=True)
-    right = np.cross(np.asarray(up, np.float64), back)
-    # Straight above or below the target the up vector is parallel to the view: use y instead.
-    degenerate = np.linalg.norm(right, axis=-1) < 1e-6
-    right[degenerate] = np.cross([0.0, 1.0, 0.0], back[degenerate])
-    right /= np.linalg.norm(right, axis=-1, keepdims=True)
-    cam_up = np.cross(back, right)
-    return np.stack([right, cam_up, back, eyes], axis=-1).astype(np.float32)
+    c2w = cameras.look_at(torch.from_numpy(np.asarray(eyes, np.float64)), target, up)
+    return c2w.numpy().astype(np.float32)
 
 
 def hemisphere_cameras(n: int, seed: int, radius: float = CAMERA_RADIUS) -> np.ndarray:

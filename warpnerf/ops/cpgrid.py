@@ -98,9 +98,6 @@ class CPGridSpec:
     def lines_shape(self) -> tuple[int, int, int]:
         return (self.n_rows, 3, self.rank)
 
-    def level_sizes(self) -> list[int]:
-        return list(self.resolutions)
-
 
 def init_cp_lines(
     spec: CPGridSpec,

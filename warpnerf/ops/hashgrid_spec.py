@@ -72,6 +72,3 @@ class HashGridSpec:
     @property
     def out_dim(self) -> int:
         return self.n_levels * self.n_features
-
-    def level_sizes(self) -> list[int]:
-        return [self.offsets[m + 1] - self.offsets[m] for m in range(self.n_levels)]

@@ -1,0 +1,122 @@
+"""The typed config is the one source of the train CLI: every field a flag, typed, with help and choices."""
+
+import argparse
+from dataclasses import fields
+
+import pytest
+
+from warpnerf import config as C
+from warpnerf.cli import build_parser
+from warpnerf.cli_config import config_overrides, flag_name
+
+
+def train_parser() -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["train"]
+
+
+def train_actions() -> dict:
+    return {opt: a for a in train_parser()._actions for opt in a.option_strings}
+
+
+def parse(*argv):
+    return build_parser().parse_args(["train", *argv])
+
+
+def test_every_field_has_a_flag_with_help():
+    actions = train_actions()
+    for f in fields(C.TrainConfig):
+        action = actions.get(flag_name(f.name))
+        assert action is not None, f"TrainConfig.{f.name} has no flag {flag_name(f.name)}"
+        assert action.dest == f.name
+        assert C.field_help()[f.name].strip(), f"TrainConfig.{f.name} has no help comment"
+        assert C.field_help()[f.name] in action.help.replace("%%", "%")
+
+
+def test_flag_types_follow_annotations():
+    actions = train_actions()
+    for f in fields(C.TrainConfig):
+        typ, optional = C.field_type(f.name)
+        action = actions[flag_name(f.name)]
+        if typ is bool:
+            assert isinstance(action, argparse.BooleanOptionalAction) and "--no-" + flag_name(f.name)[2:] in actions
+        else:
+            assert action.type is typ, f.name
+        # optional fields hold None by default; the others a value of their annotated type
+        assert (f.default is None) == optional, f.name
+        if f.default is not None:
+            assert isinstance(f.default, typ), f.name
+
+
+def test_field_type_unwraps_optional():
+    assert C.field_type("threads") == (int, True)
+    assert C.field_type("pose_noise") == (float, True)
+    assert C.field_type("data_root") == (str, True)
+    assert C.field_type("g2fr") == (bool, False)
+    assert C.field_type("lr") == (float, False)
+
+
+def test_flags_not_given_are_none_so_presets_keep_their_values():
+    args = parse()
+    values = config_overrides(args)
+    assert set(values) == {f.name for f in fields(C.TrainConfig)} - {"task"}
+    assert all(v is None for v in values.values())
+    assert args.task == "full"
+    cfg = C.build_config("fewshot", None, config_overrides(parse("--task", "fewshot")))
+    assert cfg.iters == 1000 and cfg.g2fr is True and cfg.n_views == 10  # configs/fewshot.toml
+
+
+def test_flags_round_trip_into_the_config(tmp_path):
+    args = parse("--task", "pose", "--iters", "7", "--lr", "3e-3", "--no-g2fr", "--g2fr-mask", "binary",
+                 "--model", "mtrf", "--pose-noise", "0.05", "--threads", "1", "--data-root", str(tmp_path),
+                 "--hidden", "32", "--levels", "8", "--pose-lr", "2e-3", "--no-random-background", "--log2-table-size",
+                 "12")
+    cfg = C.build_config(args.task, None, config_overrides(args))
+    assert (cfg.task, cfg.iters, cfg.lr, cfg.g2fr, cfg.g2fr_mask, cfg.model) == ("pose", 7, 3e-3, False, "binary", "mtrf")
+    assert (cfg.pose_noise, cfg.threads, cfg.data_root, cfg.hidden, cfg.levels) == (0.05, 1, str(tmp_path), 32, 8)
+    assert (cfg.pose_lr, cfg.random_background, cfg.log2_table_size) == (2e-3, False, 12)
+    assert isinstance(cfg.lr, float) and isinstance(cfg.iters, int)
+    # --g2fr turns on what the full preset leaves off; the flag beats the preset and a config file
+    cfg_file = tmp_path / "c.toml"
+    cfg_file.write_text("g2fr = false\niters = 9\n")
+    cfg = C.build_config("full", str(cfg_file), config_overrides(parse("--g2fr", "--config", str(cfg_file))))
+    assert cfg.g2fr is True and cfg.iters == 9
+
+
+def test_choices_come_from_the_code_registries():
+    from warpnerf import freq_mask, tasks
+
+    actions = train_actions()
+    assert list(actions["--task"].choices) == list(tasks.TASKS)
+    assert list(actions["--model"].choices) == list(C.MODELS)
+    assert list(actions["--g2fr-mask"].choices) == list(freq_mask.MASK_MODES)
+    with pytest.raises(SystemExit):
+        parse("--g2fr-mask", "smooth")
+    with pytest.raises(SystemExit):
+        parse("--iters", "ten")
+    with pytest.raises(C.ConfigError, match="g2fr_mask"):
+        C.build_config("full", overrides={"g2fr_mask": "smooth"})
+
+
+def test_toml_values_are_checked_against_the_annotations(tmp_path):
+    good = tmp_path / "good.toml"
+    good.write_text("lr = 1\nthreads = 2\npose_noise = 0\ndata_root = 'x'\ng2fr = true\n")
+    values = C.load_toml(str(good))
+    assert values == {"lr": 1.0, "threads": 2, "pose_noise": 0.0, "data_root": "x", "g2fr": True}
+    assert isinstance(values["lr"], float) and isinstance(values["pose_noise"], float)
+    for bad in ("iters = 1.5", "iters = true", "lr = 'fast'", "threads = 2.0", "g2fr = 1", "pose_noise = false"):
+        path = tmp_path / "bad.toml"
+        path.write_text(bad + "\n")
+        with pytest.raises(C.ConfigError, match=bad.split(" ")[0]):
+            C.load_toml(str(path))
+
+
+def test_g2fr_beta_has_one_default():
+    from warpnerf import spectrum
+    from warpnerf.freq_mask import G2fRSchedule
+
+    assert C.TrainConfig().g2fr_beta == C.G2FR_BETA
+    assert G2fRSchedule(4, 10).beta == C.G2FR_BETA
+    assert spectrum.FitConfig().beta == C.G2FR_BETA
+    for task in ("full", "fewshot", "pose"):  # presets do not restate it
+        assert "g2fr_beta" not in C.load_toml(C.preset_path(task))
