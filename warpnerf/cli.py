@@ -25,9 +25,9 @@ def _add_device(p: argparse.ArgumentParser) -> None:
 def _setup_device(args) -> str:
     from . import device
 
-    if args.threads is not None:
-        device.set_num_threads(args.threads)
     try:
+        if args.threads is not None:
+            device.set_num_threads(args.threads)
         return device.resolve_device(args.device)
     except ValueError as e:
         raise UserError(str(e)) from e
@@ -73,20 +73,37 @@ _TRAIN_FLAGS = [
     ("--eval-every", int, "evaluate every k-th test view"),
     ("--eval-max-views", int, "cap on evaluated test views (0: no cap)"),
     ("--video-frames", int, "turntable frames (0: no video)"),
+    ("--save-every", int, "steps between periodic checkpoints (0: only at the end)"),
 ]
 
 
 def cmd_train(args) -> int:
-    from .config import build_config
-    from .run import run_training
+    from .config import build_config, load_toml
+    from .run import read_run_config, run_training
 
     overrides = {flag.lstrip("-").replace("-", "_"): getattr(args, flag.lstrip("-").replace("-", "_"))
                  for flag, _, _ in _TRAIN_FLAGS}
     overrides["g2fr"] = args.g2fr
+    overrides["allow_rgb"] = args.allow_rgb
     overrides["device"] = args.device
     overrides["threads"] = args.threads
-    cfg = build_config(args.task, args.config, overrides)
-    metrics = run_training(cfg, progress=not args.quiet)
+    task = args.task
+    if args.resume:
+        # the run's own config, with whatever the command line changes on top (checked against it)
+        saved = read_run_config(args.resume)
+        task, overrides["out"] = saved.task, args.resume
+        file_values = load_toml(args.config) if args.config else {}
+        base = {k: v for k, v in saved.to_dict().items() if k != "task"}
+        overrides = {**base, **file_values, **{k: v for k, v in overrides.items() if v is not None}}
+        if args.device == "auto":
+            overrides["device"] = saved.device
+        cfg = build_config(task, None, overrides)
+    else:
+        cfg = build_config(task, args.config, overrides)
+    metrics = run_training(cfg, progress=not args.quiet, overwrite=args.overwrite, resume=bool(args.resume),
+                           force=args.force)
+    if metrics.get("already_finished"):
+        return 0
     print(_summary(metrics))
     print(f"run folder: {cfg.run_dir()}")
     return 0
@@ -104,7 +121,7 @@ def cmd_eval(args) -> int:
     from .run import evaluate_run
 
     _setup_device(args)
-    res = evaluate_run(args.run, progress=not args.quiet)
+    res = evaluate_run(args.run, progress=not args.quiet, device=args.device)
     print(f"PSNR {res['psnr']:.2f} dB; SSIM {res['ssim']:.3f}; written to {args.run}/eval/metrics.json")
     return 0
 
@@ -140,6 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--g2fr", action=argparse.BooleanOptionalAction, default=None,
                    help="G2fR coarse-to-fine level mask (paper eq. 15)")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
+    t.add_argument("--allow-rgb", action="store_true", default=None,
+                   help="accept Blender-layout images without alpha (a warning instead of an error)")
+    t.add_argument("--resume", metavar="RUN", default=None,
+                   help="continue the unfinished run folder RUN from its last checkpoint")
+    t.add_argument("--force", action="store_true", help="with --resume: accept a changed configuration")
+    t.add_argument("--overwrite", action="store_true", help="clear an existing run folder at --out first")
     _add_device(t)
     t.set_defaults(func=cmd_train)
 
@@ -186,15 +209,22 @@ def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
 
     user_errors: tuple = (UserError, ConfigError)
+    interrupted: tuple = ()
     try:
+        from .checkpoint import CheckpointError
         from .data.errors import DatasetError
+        from .run import TrainingInterrupted
         from .trainer import TrainingError
 
-        user_errors += (DatasetError, TrainingError)
+        user_errors += (DatasetError, TrainingError, CheckpointError)
+        interrupted = (TrainingInterrupted,)
     except ImportError:  # pragma: no cover - partial installs
         pass
     try:
         return int(args.func(args) or 0)
+    except interrupted as e:
+        print(f"warpnerf: {e}", file=sys.stderr)
+        return 130
     except user_errors as e:
         if args.debug:
             raise

@@ -7,6 +7,7 @@ command-line flags. Unknown keys are an error that names the key and the file.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 from dataclasses import dataclass, field, fields
@@ -86,6 +87,8 @@ class TrainConfig:
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     threads: Optional[int] = None  # CPU threads for Warp launches
     log_every: int = 50  # steps between progress-bar metric refreshes
+    save_every: int = 500  # steps between periodic checkpoints (0: only at the end)
+    allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)
 
     def run_dir(self) -> str:
         if self.out:
@@ -173,3 +176,27 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
     if cfg.eval_every < 1:
         raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")
+    # one line naming the key for every value out of range, before any data loads or folder is written
+    at_least = {"threads": 1, "n_views": 1, "log_every": 1, "levels": 1, "features": 1, "hidden": 1,
+                "occ_resolution": 1, "occ_update_every": 1, "march_steps": 1, "max_samples_per_ray": 1,
+                "base_resolution": 1, "max_resolution": 1, "cp_rank": 1, "cp_max_resolution": 1,
+                "log2_table_size": 1, "save_every": 0, "eval_max_views": 0, "video_frames": 0,
+                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0}
+    for key, lo in at_least.items():
+        value = getattr(cfg, key)
+        if value is not None and value < lo:
+            raise ConfigError(f"{key} must be >= {lo}, got {value}")
+    positive = ("lr", "pose_lr", "pose_lr_final", "lr_final_ratio")
+    for key in positive:
+        value = getattr(cfg, key)
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(f"{key} must be a positive finite number, got {value}")
+    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step"):
+        value = getattr(cfg, key)
+        if value is not None and not (value >= 0 and math.isfinite(value)):
+            raise ConfigError(f"{key} must be a finite number >= 0, got {value}")
+    if cfg.task not in ("full", "fewshot", "pose"):
+        raise ConfigError(f"unknown task '{cfg.task}': expected full, fewshot or pose")
+    dev = cfg.device
+    if not (dev in ("auto", "cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
+        raise ConfigError(f"unknown device '{dev}': expected auto, cpu, cuda or cuda:N")
