@@ -201,6 +201,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     if overwrite and os.path.isdir(out_dir):
         shutil.rmtree(out_dir)
     os.makedirs(out_dir, exist_ok=True)
+    for name in os.listdir(out_dir):  # temp files of writes a crash cut short
+        if name.startswith(".tmp-"):
+            os.unlink(os.path.join(out_dir, name))
     if mode == "resume" and os.path.exists(os.path.join(out_dir, "metrics.json")):
         os.unlink(os.path.join(out_dir, "metrics.json"))  # --force on a finished run: it is unfinished again
     write_config(os.path.join(out_dir, "config.toml"), cfg)
