@@ -18,3 +18,11 @@ def threads():
     before = device.num_threads()
     yield device.set_num_threads
     device.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def chair_run(tmp_path_factory):
+    """A run folder of the built-in chair, briefly trained (tests/chair_run.py); shared by several test files."""
+    from chair_run import train_chair_run
+
+    return train_chair_run(tmp_path_factory.mktemp("chair_run"))

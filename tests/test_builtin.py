@@ -102,7 +102,7 @@ def test_cache_location_follows_env(monkeypatch, tmp_path):
 
 
 def test_unknown_builtin_lists_names():
-    with pytest.raises(DatasetError, match="built-in scenes: chair, lamp, vase"):
+    with pytest.raises(DatasetError, match="built-in scenes: chair, lamp, vase, stand"):
         load_builtin("sofa")
 
 

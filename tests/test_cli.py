@@ -63,7 +63,7 @@ def test_bench_encoding_json_is_measured(model):
 def test_scenes_lists_builtins():
     code, out, _ = run_cli("scenes")
     assert code == 0
-    for name in ("chair", "lamp", "vase"):
+    for name in ("chair", "lamp", "vase", "stand"):
         assert name in out
 
 
@@ -83,7 +83,7 @@ def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
         assert key in m, key
     assert m["scene_source"] == "builtin" and m["n_train_views"] == 10 and m["g2fr"] is True and m["iters"] == 30
     assert m["psnr"] > 8.0  # 30 steps: far from converged, but not garbage
-    assert (out / "turntable.gif").exists() and (out / "config.toml").exists()
+    assert ((out / "turntable.mp4").exists() or (out / "turntable.gif").exists()) and (out / "config.toml").exists()
     assert len(list((out / "renders").glob("test_*.png"))) == 4  # 2 views x (rgb, depth)
     code, stdout, err = run_cli("eval", "--run", str(out), "--quiet", env={"WARPNERF_CACHE": str(tmp_path / "cache")})
     assert code == 0, err[-2000:]

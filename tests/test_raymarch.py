@@ -160,3 +160,24 @@ def test_bad_inputs_raise():
     for error, message, change in bad:
         with pytest.raises(error, match=message):
             march_rays(**{**ok, **change})
+
+
+def test_sample_budget_keeps_a_prefix_of_whole_rays():
+    """march_rays_within_budget: the longest prefix of rays that fits keeps exactly the samples
+    march_rays gives it; later rays get none; without a cap it is march_rays."""
+    from warpnerf.ops.raymarch import march_rays_within_budget
+
+    g = torch.Generator().manual_seed(0)
+    o = torch.rand(64, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -3.0])
+    d = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    args = (o, d, (-1, -1, -1, 1, 1, 1), None, 1, 0.0, 10.0, 0.05)
+    full = march_rays(*args)
+    same, n_all = march_rays_within_budget(*args)
+    assert n_all == 64 and all(torch.equal(a, b) for a, b in zip(full, same))
+    budget = int(full.ray_counts.sum()) // 3
+    cut, n = march_rays_within_budget(*args, max_total_samples=budget)
+    csum = torch.cumsum(full.ray_counts, 0)
+    assert n == int((csum <= budget).sum()) and 0 < n < 64
+    assert cut.t_starts.shape[0] == int(csum[n - 1]) <= budget
+    assert torch.equal(cut.ray_counts[:n], full.ray_counts[:n]) and int(cut.ray_counts[n:].sum()) == 0
+    assert torch.equal(cut.t_starts, full.t_starts[: cut.t_starts.shape[0]])

@@ -31,7 +31,7 @@ def trained_full():
 def test_tiny_scene_trains_to_psnr_threshold(trained_full, tmp_path):
     trainer = trained_full
     res = evaluate(trainer, str(tmp_path), progress=False)
-    # measured: 27.9 dB on the 4 held-out views after 300 steps (~10 s on 2 cores)
+    # measured: 24.7 dB on the 4 held-out views after 300 steps (25.0 without the 30-step lr warm-up)
     assert res["psnr"] > 22.0, res["psnr"]
     assert res["ssim"] > 0.8
     assert trainer.history["psnr"][-1] > trainer.history["psnr"][0] + 8
@@ -149,3 +149,94 @@ def test_non_finite_loss_is_a_clear_error():
     with pytest.raises(TrainingError, match="non-finite loss"):
         for s in range(10):
             t.train_step(s)
+
+
+# --- runs that do not learn, memory bounds, thin structures (thin-scene issue) -------------------
+
+
+def test_learning_guard_stops_a_run_that_does_not_learn():
+    """A learning rate so small that nothing moves: the run stays at the background-only loss level
+    and the guard stops it after the warm-ups with a line naming the step and what to try."""
+    from warpnerf.trainer import TrainingError
+
+    t = make_trainer(iters=400, lr=1e-12, lr_warmup=0, log_every=20)
+    with pytest.raises(TrainingError, match=r"not learning at step 240: .* try a lower --lr"):
+        t.fit(progress=False)
+
+
+def test_learning_guard_is_quiet_on_a_run_that_learns(trained_full):
+    # trained_full ran 300 steps past the guard's start (232 here) without stopping
+    assert trainer_steps(trained_full) == 300
+
+
+def trainer_steps(trainer) -> int:
+    return trainer.history["step"][-1] + 1
+
+
+def test_sample_budget_bounds_a_step_when_the_grid_is_full_or_empty():
+    """Force the pathological states of a collapsed run: an empty grid (no samples, the ray count
+    climbs to its cap), then a full one with that many rays. No step may take more samples than
+    sample_budget, rays past the budget stay out of the loss, and the grid re-opens when empty."""
+    budget = 8192
+    t = make_trainer(iters=50, sample_budget=budget, max_samples_per_ray=256, occ_warmup=0, lr_warmup=0)
+    seen = []
+    render = t.renderer.render_rays
+
+    def spy(*a, **kw):
+        out = render(*a, **kw)
+        seen.append((out.n_samples, out.n_rays, a[0].shape[0]))
+        return out
+
+    t.renderer.render_rays = spy
+    t.n_rays = 1 << 16
+    t.occupancy.bitfield.fill_(1)
+    stats = t.train_step(1)  # not an update step: the full grid stays
+    n_samples, n_kept, n_rays = seen[-1]
+    assert n_samples <= budget and 0 < n_kept < n_rays == 1 << 16
+    assert math.isfinite(stats["loss"])
+    # an update that would empty the grid re-opens it instead
+    t.field.density_net[-1].bias.data[0] = -math.inf  # density exactly 0 everywhere ...
+    t.occupancy.density.zero_()  # ... and nothing remembered: this update empties the grid
+    t.train_step(t.occupancy.update_every)
+    assert t.occupancy.occupied_fraction() == 1.0
+    assert all(s <= budget for s, _, _ in seen)
+
+
+def test_render_image_with_a_small_sample_budget_matches_an_unbounded_one(trained_full):
+    t = trained_full
+    v = t.views
+    w = t.level_weights(t.cfg.iters)
+    full = t.renderer.render_image(v.c2w[0], v.height, v.width, v.focal, v.cx, v.cy, w)
+    budget, t.renderer.sample_budget = t.renderer.sample_budget, t.renderer.max_samples_per_ray
+    try:
+        small = t.renderer.render_image(v.c2w[0], v.height, v.width, v.focal, v.cx, v.cy, w)
+    finally:
+        t.renderer.sample_budget = budget
+    # same rays, same samples, rendered across many chunks: identical up to float summation order
+    assert torch.allclose(full["rgb"], small["rgb"], atol=1e-5)
+    assert torch.allclose(full["opacity"], small["opacity"], atol=1e-5)
+
+
+def test_peak_memory_over_budget_is_a_clear_error():
+    from warpnerf.trainer import TrainingError
+
+    t = make_trainer(iters=10, memory_budget_mb=1)
+    with pytest.raises(TrainingError, match=r"peak memory \d+ MB exceeds memory_budget_mb = 1 at step 0"):
+        t.fit(progress=False)
+
+
+def test_thin_builtin_scene_trains(tmp_path):
+    """The built-in 'stand' (wires about a pixel wide over mostly empty views, like mic or ficus)
+    trains with the default full preset's optimiser settings instead of collapsing to empty space."""
+    from warpnerf.data.resolve import load_scene
+
+    scene = load_scene("stand", builtin_resolution=48, cache_dir=str(tmp_path), progress=False,
+                       splits=("train", "test"))
+    cfg = build_config("full", overrides={**TINY, "lr": 1e-2, "iters": 300, "eval_max_views": 3, "eval_every": 40})
+    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
+    trainer.fit(progress=False)
+    res = evaluate(trainer, None, progress=False)
+    # measured: see the assertion message; a collapsed (empty) field scores the background-only PSNR
+    empty = -10 * math.log10(float(((scene.test.images[::40][:3] - 1.0) ** 2).mean()))
+    assert res["psnr"] > empty + 6, (res["psnr"], empty)
+    assert trainer.occupancy.occupied_fraction() > 0.0

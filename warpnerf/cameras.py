@@ -377,11 +377,14 @@ def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:
     similarity, and errors are measured per view.
 
     Returns a dict with
-      rot_err_deg: mean rotation error, degrees (float);
-      trans_err_x100: mean 100 * ||centre_aligned - centre_gt|| (float, scene units x 100);
-      trans_err_w2c_x100: mean 100 * ||t_w2c_aligned - t_w2c_gt||, the quantity BARF's code
-          prints as "trans" (w2c translations; differs from the centre error when rotations differ);
-      rot_err_deg_per_view, trans_err_x100_per_view: lists of N floats;
+      rot_err_deg: mean rotation error, degrees (float; unclamped float64 arccos, whereas BARF's
+          float32 clamp floors its figure at ~0.026 deg);
+      trans_err_x100: mean 100 * ||t_w2c_aligned - t_w2c_gt||, BARF's "trans" (its
+          ``evaluate_camera_alignment``, which the paper's tables report): the translation of the
+          aligned *world-to-camera* pose, scene units x 100;
+      centre_err_x100: mean 100 * ||centre_aligned - centre_gt||, the camera-centre distance
+          (differs from trans_err_x100 in either direction when rotations differ);
+      rot_err_deg_per_view, trans_err_x100_per_view, centre_err_x100_per_view: lists of N floats;
       sim3: (s, R (3, 3), t (3,)) mapping estimate -> ground truth (see
           :func:`map_gt_poses_to_estimate_frame` for test views);
       c2w_aligned: (N, 3, 4) aligned estimated poses (detached).
@@ -391,14 +394,15 @@ def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:
     s, R, t = procrustes_sim3(est[:, :, 3], gt[:, :, 3])
     aligned = apply_sim3_to_poses(est, s, R, t)
     rot = rotation_error_deg(aligned, gt)
-    trans = 100.0 * translation_error(aligned[:, :, 3], gt[:, :, 3])
-    trans_w2c = 100.0 * translation_error(invert(aligned)[:, :, 3], invert(gt)[:, :, 3])
+    centre = 100.0 * translation_error(aligned[:, :, 3], gt[:, :, 3])
+    trans = 100.0 * translation_error(invert(aligned)[:, :, 3], invert(gt)[:, :, 3])
     return {
         "rot_err_deg": float(rot.mean()),
         "trans_err_x100": float(trans.mean()),
-        "trans_err_w2c_x100": float(trans_w2c.mean()),
+        "centre_err_x100": float(centre.mean()),
         "rot_err_deg_per_view": [float(x) for x in rot],
         "trans_err_x100_per_view": [float(x) for x in trans],
+        "centre_err_x100_per_view": [float(x) for x in centre],
         "sim3": (s, R, t),
         "c2w_aligned": aligned,
     }

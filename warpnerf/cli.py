@@ -1,4 +1,4 @@
-"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``.
+"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``render``, ``export``, ``view``.
 
 Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
 User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
@@ -74,6 +74,10 @@ _TRAIN_FLAGS = [
     ("--eval-max-views", int, "cap on evaluated test views (0: no cap)"),
     ("--video-frames", int, "turntable frames (0: no video)"),
     ("--save-every", int, "steps between periodic checkpoints (0: only at the end)"),
+    ("--log", str, "none or tensorboard (scalars to RUN/tb; pip install 'warpnerf[log]')"),
+    ("--heldout-every", int, "steps between held-out PSNR renders (0: off)"),
+    ("--checkpoint-every", int, "steps between checkpoint saves, for 'warpnerf view' on a running training (0: end)"),
+    ("--lpips-weights", str, "LPIPS(alex) weights file or folder (see docs/outputs.md); default: look locally"),
 ]
 
 
@@ -113,7 +117,7 @@ def _summary(m: dict) -> str:
     parts = [f"PSNR {m['psnr']:.2f} dB", f"SSIM {m['ssim']:.3f}", f"{m['iters']} iters",
              f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
     if "rot_err_deg" in m:
-        parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err x100 {m['trans_err_x100']:.3f}"]
+        parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
     return "; ".join(parts)
 
 
@@ -200,6 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
+    from .outputs_cli import add_output_commands  # render, export, view (commands on a finished run)
+
+    add_output_commands(sub)
     return parser
 
 

@@ -47,6 +47,8 @@ class TrainConfig:
     target_samples: int = 131072  # samples per step the ray count adapts to (instant-ngp style)
     lr: float = 1e-2  # Adam learning rate of the hash table and the MLPs
     lr_final_ratio: float = 0.1  # exponential decay of lr to lr * ratio at the last step
+    lr_warmup: int = 100  # steps of linear lr warm-up from 1 % of lr (nerfacc), at most iters // 10; keeps thin scenes stable
+    random_background: bool = True  # scenes with alpha: train against random per-ray backgrounds (instant-ngp)
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     # --- G²fR (paper eq. 15) ---
     g2fr: bool = False  # mask grid levels coarse to fine
@@ -69,6 +71,9 @@ class TrainConfig:
     march_steps: int = 1024  # ray-marching steps across the box diagonal (instant-ngp: 1024)
     render_step: float = 0.0  # explicit ray-marching step in scene units; 0 = diagonal / march_steps
     max_samples_per_ray: int = 1024
+    sample_budget: int = 262144  # hard cap on packed samples per training step and per render chunk (memory)
+    memory_budget_mb: int = 4096  # stop with a clear error when the process's peak memory exceeds this
+    learn_guard: bool = True  # stop when the loss stays at the background-only level after warm-up
     # --- tasks ---
     n_views: int = 10  # fewshot: number of training views
     views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids
@@ -89,6 +94,12 @@ class TrainConfig:
     log_every: int = 50  # steps between progress-bar metric refreshes
     save_every: int = 500  # steps between periodic checkpoints (0: only at the end)
     allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)
+    # --- monitoring and metrics (warpnerf/monitor.py, warpnerf/metrics.py) ---
+    log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps
+    heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
+    heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
+    checkpoint_every: int = 0  # steps between checkpoint.pt saves during training ('warpnerf view' follows them); 0 = end only
+    lpips_weights: str = ""  # LPIPS(alex) weights: full state-dict file or folder (see metrics.py); "" = auto
 
     def run_dir(self) -> str:
         if self.out:
@@ -174,6 +185,12 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"unknown model '{cfg.model}': expected one of {', '.join(MODELS)}")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
+    if cfg.lr_warmup < 0:
+        raise ConfigError(f"lr_warmup must be >= 0, got {cfg.lr_warmup}")
+    if cfg.sample_budget < cfg.max_samples_per_ray:
+        raise ConfigError(f"sample_budget ({cfg.sample_budget}) must be >= max_samples_per_ray ({cfg.max_samples_per_ray})")
+    if cfg.log not in ("none", "tensorboard"):
+        raise ConfigError(f"log must be none or tensorboard, got '{cfg.log}'")
     if cfg.eval_every < 1:
         raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")
     # one line naming the key for every value out of range, before any data loads or folder is written

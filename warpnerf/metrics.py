@@ -114,54 +114,187 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, padding: str = "valid") -> float:
     return float(m.flatten(1).mean(1).mean())
 
 
-_LPIPS_MODEL = None
-_LPIPS_TRIED = False
+# ---- LPIPS (AlexNet, v0.1) -----------------------------------------------------------------------
+#
+# The ``lpips`` package builds its AlexNet trunk with torchvision, and PyPI's torchvision does not
+# import beside every torch build (torch 2.13.0+cpu here). So the computation lives here in plain
+# torch, with the same layers, layer names and formula as ``lpips.LPIPS(net="alex", version="0.1")``
+# (checked in tests/test_lpips.py against the lpips package's own forward, on random trunk weights),
+# and only the *weights* come from outside. Nothing is ever downloaded.
+#
+# Weights (both are needed; see docs/outputs.md):
+#   trunk: torchvision's ImageNet AlexNet checkpoint ``alexnet-owt-7be5be79.pth`` (keys features.N.*)
+#   lin:   lpips' calibrated 1x1 layers ``lpips/weights/v0.1/alex.pth`` (keys linK.model.1.weight),
+#          shipped inside the lpips wheel (``pip install 'warpnerf[metrics]'`` or ``pip install --no-deps lpips``)
+# or one file with a full ``lpips.LPIPS(net="alex").state_dict()`` (keys net.sliceK.N.*, linK.model.1.weight).
+
+ALEXNET_CHECKPOINT = "alexnet-owt-7be5be79.pth"  # torchvision's AlexNet_Weights.IMAGENET1K_V1 file name
+_ALEX_CONVS = {0: (3, 64, 11, 4, 2), 3: (64, 192, 5, 1, 2), 6: (192, 384, 3, 1, 1), 8: (384, 256, 3, 1, 1),
+               10: (256, 256, 3, 1, 1)}  # index in torchvision's alexnet.features -> (in, out, kernel, stride, pad)
+_ALEX_TAPS = (1, 4, 7, 9, 11)  # the ReLUs whose outputs LPIPS compares (lpips' slice1..slice5 ends)
 
 
-def _torchvision_alexnet_cached() -> bool:
-    """True if torchvision's ImageNet AlexNet checkpoint is already in the torch hub cache
-    (lpips' backbone loads it from there and would otherwise download it)."""
-    # The exact file name torchvision's AlexNet_Weights.IMAGENET1K_V1 url resolves to; if it is
-    # present, torch.hub.load_state_dict_from_url reads it instead of downloading.
-    return os.path.isfile(os.path.join(torch.hub.get_dir(), "checkpoints", "alexnet-owt-7be5be79.pth"))
+class AlexNetTrunk(torch.nn.Module):
+    """torchvision's ``alexnet().features`` up to relu5 (same indices, so its state dict loads);
+    ``forward`` returns the five ReLU outputs LPIPS compares."""
+
+    def __init__(self):
+        super().__init__()
+        layers = []
+        for i in range(12):
+            if i in _ALEX_CONVS:
+                cin, cout, k, st, pad = _ALEX_CONVS[i]
+                layers.append(torch.nn.Conv2d(cin, cout, k, st, pad))
+            elif i in (2, 5):
+                layers.append(torch.nn.MaxPool2d(3, 2))
+            else:
+                layers.append(torch.nn.ReLU(inplace=False))
+        self.features = torch.nn.Sequential(*layers)
+        self.channels = (64, 192, 384, 256, 256)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        out = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in _ALEX_TAPS:
+                out.append(x)
+        return out
 
 
-def _load_lpips():
-    """The LPIPS(alex) network if the ``lpips`` package, its linear-layer weights and the AlexNet
-    backbone weights are all installed locally; None otherwise. Never downloads anything."""
-    global _LPIPS_MODEL, _LPIPS_TRIED
-    if _LPIPS_TRIED:
-        return _LPIPS_MODEL
-    _LPIPS_TRIED = True
-    try:
-        import lpips  # noqa: F401  (optional dependency)
-    except Exception:
+class LPIPSNet(torch.nn.Module):
+    """LPIPS v0.1: a trunk's feature maps, unit-normalised over channels, squared differences
+    weighted by one 1x1 conv per tap, averaged over pixels and summed over taps.
+
+    Args:
+        trunk: module mapping (N, 3, H, W) scaled images to a list of (N, C_k, H_k, W_k) maps and
+            with a ``channels`` tuple (default :class:`AlexNetTrunk`; tests pass a tiny stand-in).
+    """
+
+    def __init__(self, trunk: Optional[torch.nn.Module] = None):
+        super().__init__()
+        self.trunk = trunk if trunk is not None else AlexNetTrunk()
+        self.lins = torch.nn.ModuleList(torch.nn.Conv2d(c, 1, 1, bias=False) for c in self.trunk.channels)
+        # lpips' ScalingLayer: ImageNet statistics in the [-1, 1] input range
+        self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188])[None, :, None, None])
+        self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450])[None, :, None, None])
+
+    def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) images in [-1, 1] -> (N,) distances."""
+        f0 = self.trunk((x0 - self.shift) / self.scale)
+        f1 = self.trunk((x1 - self.shift) / self.scale)
+        total = 0.0
+        for a, b, lin in zip(f0, f1, self.lins):
+            a = a / (a.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            b = b / (b.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + lin((a - b) ** 2).mean((2, 3))
+        return total[:, 0]
+
+    def load_lpips_state(self, state: dict) -> None:
+        """Load trunk and/or linear weights from torchvision (``features.N.*``), lpips
+        (``net.sliceK.N.*``, ``linK.model.1.weight``) or this class's own key names."""
+        own = {}
+        for key, value in state.items():
+            parts = key.split(".")
+            if parts[0] == "features" and len(parts) == 3:
+                own[f"trunk.features.{parts[1]}.{parts[2]}"] = value
+            elif parts[0] == "net" and len(parts) == 4 and parts[1].startswith("slice"):
+                own[f"trunk.features.{parts[2]}.{parts[3]}"] = value
+            elif parts[0].startswith("lin") and parts[0][3:].isdigit() and parts[-1] == "weight":
+                own[f"lins.{parts[0][3:]}.weight"] = value
+            elif key in self.state_dict():  # our own names (lpips' duplicate lins.K.model.1.* never match)
+                own[key] = value
+        missing = set(self.state_dict()) - {"shift", "scale"} - set(own)
+        self.load_state_dict({**self.state_dict(), **own})
+        if len(missing) == len(self.state_dict()) - 2:
+            raise ValueError("no LPIPS trunk or linear weights among the keys of this state dict")
+
+
+def _trunk_keys(state: dict) -> bool:
+    return any(k.startswith(("features.0.", "net.slice1.0.", "trunk.features.0.")) for k in state)
+
+
+def _lin_keys(state: dict) -> bool:
+    return any(k.startswith(("lin0.", "lins.0.")) for k in state)
+
+
+def lpips_weight_files(path: str = "") -> Optional[list[str]]:
+    """The weight files LPIPS(alex) would load, or None when they are not all on disk.
+
+    ``path``: "" = look in the usual places (torch hub's checkpoint folder for the trunk, the
+    installed lpips package for the linear layers; lpips is located, never imported); a file =
+    a full LPIPS state dict, or a torchvision AlexNet checkpoint (linear layers then from lpips);
+    a folder = holding ``alexnet-owt-7be5be79.pth`` and ``alex.pth``."""
+    import importlib.util
+
+    lin = None
+    spec = importlib.util.find_spec("lpips")
+    if spec is not None and spec.origin:
+        cand = os.path.join(os.path.dirname(spec.origin), "weights", "v0.1", "alex.pth")
+        lin = cand if os.path.isfile(cand) else None
+    if not path:
+        trunk = os.path.join(torch.hub.get_dir(), "checkpoints", ALEXNET_CHECKPOINT)
+        return [trunk, lin] if lin and os.path.isfile(trunk) else None
+    if os.path.isdir(path):
+        trunk, lin_here = os.path.join(path, ALEXNET_CHECKPOINT), os.path.join(path, "alex.pth")
+        lin = lin_here if os.path.isfile(lin_here) else lin
+        return [trunk, lin] if lin and os.path.isfile(trunk) else None
+    if os.path.isfile(path):
+        return [path] if lin is None else [path, lin]
+    return None
+
+
+def load_lpips_net(path: str = "") -> Optional[LPIPSNet]:
+    """LPIPSNet(alex) with local weights (see :func:`lpips_weight_files`), or None if any are missing."""
+    files = lpips_weight_files(path)
+    if files is None:
         return None
-    lin = os.path.join(os.path.dirname(lpips.__file__), "weights", "v0.1", "alex.pth")
-    if not (os.path.isfile(lin) and _torchvision_alexnet_cached()):
+    states = [torch.load(f, map_location="cpu", weights_only=True) for f in files]
+    if not any(_trunk_keys(s) for s in states) or not any(_lin_keys(s) for s in states):
         return None
-    try:
-        model = lpips.LPIPS(net="alex", verbose=False)
-    except Exception:
-        return None
-    _LPIPS_MODEL = model.eval()
-    return _LPIPS_MODEL
+    net = LPIPSNet()
+    for s in reversed(states):  # the explicit file last, so its keys win
+        if _trunk_keys(s) or _lin_keys(s):
+            net.load_lpips_state(s)
+    return net.eval()
+
+
+_LPIPS = {"path": "", "net": None, "loaded": False}
+
+
+def configure_lpips(path: str = "", net: Optional[torch.nn.Module] = None) -> bool:
+    """Choose LPIPS weights for :func:`lpips_or_none` (``path`` as in :func:`lpips_weight_files`),
+    or a ready network ``net`` (tests use a stand-in). A ``path`` given but unusable is an error.
+    Returns True when LPIPS will be computed."""
+    _LPIPS.update(path=path, net=net, loaded=net is not None)
+    if net is None and path:
+        if load_lpips_net_cached() is None:
+            raise ValueError(f"no usable LPIPS(alex) weights at '{path}': need torchvision's {ALEXNET_CHECKPOINT} "
+                             "and lpips' alex.pth, or one full LPIPS state dict (see docs/outputs.md)")
+    return load_lpips_net_cached() is not None
+
+
+def load_lpips_net_cached() -> Optional[torch.nn.Module]:
+    if not _LPIPS["loaded"]:
+        _LPIPS["net"] = load_lpips_net(_LPIPS["path"])
+        _LPIPS["loaded"] = True
+    return _LPIPS["net"]
 
 
 def lpips_or_none(pred: torch.Tensor, gt: torch.Tensor) -> Optional[float]:
-    """LPIPS (AlexNet, lower is better) of images in [0, 1], or None when its pretrained weights
-    are not available offline (the usual case here; results then report LPIPS as null).
+    """LPIPS (AlexNet, v0.1, lower is better) of images in [0, 1], or None when its weights are
+    not on disk (then results report LPIPS as null). Never downloads.
 
     pred, gt: (H, W, 3) or (N, H, W, 3); for a batch the per-image values are averaged.
     """
-    model = _load_lpips()
-    if model is None:
+    net = load_lpips_net_cached()
+    if net is None:
         return None
     p = _as_batch(pred.detach()).float().cpu() * 2 - 1  # LPIPS expects [-1, 1]
     q = _as_batch(gt.detach()).float().cpu() * 2 - 1
     with torch.no_grad():
-        d = model(p, q)
+        d = net(p, q)
     return float(d.mean())
 
 
-__all__ = ["psnr", "psnr_from_mse", "ssim", "ssim_map", "gaussian_window_1d", "lpips_or_none"]
+__all__ = ["psnr", "psnr_from_mse", "ssim", "ssim_map", "gaussian_window_1d", "lpips_or_none", "configure_lpips",
+           "LPIPSNet", "AlexNetTrunk", "load_lpips_net", "lpips_weight_files"]

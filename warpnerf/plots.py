@@ -136,7 +136,7 @@ def plot_pose_error_curve(
         colour = _RUN_COLOURS[i % len(_RUN_COLOURS)]
         ax_r.plot(_np(it), _np(rot), color=colour, label=label)
         ax_t.plot(_np(it), _np(trans), color=colour, label=label)
-    for ax, name in ((ax_r, "rotation error (degrees)"), (ax_t, "translation error (x100, scene units)")):
+    for ax, name in ((ax_r, "rotation error (degrees)"), (ax_t, "translation error (BARF, w2c, x100)")):
         ax.set_xlabel("iteration")
         ax.set_ylabel(name)
         if log_y:

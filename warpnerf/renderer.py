@@ -19,7 +19,7 @@ import torch
 
 from .occupancy import OccupancyGrid
 from .ops.composite import composite_rays
-from .ops.raymarch import march_rays
+from .ops.raymarch import march_rays_within_budget
 
 
 def pixel_rays(c2w: torch.Tensor, u: torch.Tensor, v: torch.Tensor, focal: float, cx: float, cy: float):
@@ -45,6 +45,8 @@ class RenderOutput:
     opacity: torch.Tensor  # (R,)
     depth: torch.Tensor  # (R,) expected distance along the (unit) ray, divided by opacity
     n_samples: int  # packed samples in this batch
+    # rays [0, n_rays) were rendered; with a sample budget the rest got no samples (see render_rays)
+    n_rays: int = -1
 
 
 class Renderer:
@@ -68,7 +70,8 @@ class Renderer:
 
     def __init__(self, field, occupancy: OccupancyGrid, near: float, far: float, step: float,
                  background=(1.0, 1.0, 1.0), max_samples_per_ray: int = 1024,
-                 ray_transform: Optional[Callable] = None, color_weight_eps: float = 1e-4):
+                 ray_transform: Optional[Callable] = None, color_weight_eps: float = 1e-4,
+                 sample_budget: int = 1 << 18):
         self.field = field
         self.occupancy = occupancy
         self.near, self.far, self.step = float(near), float(far), float(step)
@@ -76,10 +79,17 @@ class Renderer:
         self.max_samples_per_ray = int(max_samples_per_ray)
         self.ray_transform = ray_transform
         self.color_weight_eps = float(color_weight_eps)
+        # packed samples per render_rays call at most (memory bound); one ray must always fit
+        self.sample_budget = max(int(sample_budget), self.max_samples_per_ray)
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
-                    jitter: Optional[torch.Tensor] = None) -> RenderOutput:
-        """Render (R, 3) rays (unit directions). Differentiable w.r.t. the field and the rays."""
+                    jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None) -> RenderOutput:
+        """Render (R, 3) rays (unit directions). Differentiable w.r.t. the field and the rays.
+
+        At most ``sample_budget`` samples are taken: if the rays would need more, only the first
+        ``out.n_rays`` rays are rendered (the others come back as background with no samples), so
+        memory stays bounded however empty or full the occupancy grid is. ``background``: optional
+        (R, 3) per-ray colours replacing the renderer's constant one (random backgrounds)."""
         view_dirs = rays_d
         o, d = rays_o, rays_d
         near = self.near
@@ -88,17 +98,19 @@ class Renderer:
             d = torch.nn.functional.normalize(d, dim=-1)
             near = 0.0
         with torch.no_grad():
-            packed = march_rays(o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb,
-                                self.occupancy.bitfield, self.occupancy.resolution, near, self.far, self.step,
-                                self.max_samples_per_ray, jitter)
+            packed, n_marched = march_rays_within_budget(
+                o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
+                self.occupancy.resolution, near, self.far, self.step, self.max_samples_per_ray, jitter,
+                max_total_samples=self.sample_budget)
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
         x = o[ray] + t_mid[:, None] * d[ray]
         sigma, geo = self.field.geometry(x, level_weights)
         rgb = self._sample_colors(sigma, geo, view_dirs, ray, packed)
+        bg = self.background if background is None else background
         color, opacity, depth = composite_rays(sigma, rgb, packed.t_starts, packed.t_ends, packed.ray_offsets,
-                                               packed.ray_counts, self.background)
-        return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), int(ray.shape[0]))
+                                               packed.ray_counts, bg)
+        return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), int(ray.shape[0]), n_marched)
 
     def _sample_colors(self, sigma, geo, view_dirs, ray, packed) -> torch.Tensor:
         if self.color_weight_eps <= 0 or sigma.shape[0] == 0:
@@ -123,13 +135,17 @@ class Renderer:
                               torch.arange(width, device=dev, dtype=torch.float32) + 0.5, indexing="ij")
         u, v = u.reshape(-1), v.reshape(-1)
         rgbs, depths, opac = [], [], []
-        for lo in range(0, u.shape[0], chunk):
+        lo = 0
+        while lo < u.shape[0]:
             uu, vv = u[lo:lo + chunk], v[lo:lo + chunk]
             o, d = pixel_rays(c2w[None].expand(uu.shape[0], 3, 4), uu, vv, focal, cx, cy)
             out = self.render_rays(o.contiguous(), d.contiguous(), level_weights)
-            rgbs.append(out.rgb)
-            depths.append(out.depth)
-            opac.append(out.opacity)
+            # rays past the sample budget were not rendered: the next chunk starts with them
+            done = max(out.n_rays, 1)
+            rgbs.append(out.rgb[:done])
+            depths.append(out.depth[:done])
+            opac.append(out.opacity[:done])
+            lo += done
         return {
             "rgb": torch.cat(rgbs).view(height, width, 3),
             "depth": torch.cat(depths).view(height, width),

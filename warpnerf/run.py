@@ -7,7 +7,7 @@ Run folder layout::
     history.json      training curves
     checkpoint.pt     full training state (periodic, atomic; for --resume and ``warpnerf eval``)
     renders/          test views (prediction | ground truth) and depth
-    turntable.gif     orbit video
+    turntable.mp4     orbit video (spiral for forward-facing scenes); turntable.gif without imageio-ffmpeg
     training.png      loss / PSNR curves; pose runs add cameras.png and pose_error.png
 """
 
@@ -23,7 +23,7 @@ import torch
 from . import device as devmod
 from .checkpoint import atomic_write_text
 from .config import ConfigError, TrainConfig, build_config, load_toml
-from .evaluate import evaluate, render_turntable, write_json
+from .evaluate import evaluate, write_json
 from .tasks import make_task
 from .trainer import Trainer, TrainingError
 
@@ -95,6 +95,17 @@ def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
     if metrics is None or metrics.get("config_hash") != config_hash(cfg):
         return None
     return metrics
+
+
+def _configure_lpips(cfg: TrainConfig) -> None:
+    """Pick the LPIPS weights evaluation uses (``--lpips-weights``; unusable path: one-line error)."""
+    from . import metrics
+    from .config import ConfigError
+
+    try:
+        metrics.configure_lpips(cfg.lpips_weights)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def folder_state(out_dir: str) -> str:
@@ -183,6 +194,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         device = devmod.resolve_device(cfg.device)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    _configure_lpips(cfg)
     mode = prepare_run(cfg, overwrite, resume, force)
     out_dir = cfg.run_dir()
     if mode == "finished":
@@ -233,6 +245,10 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
             signal.signal(s, on_signal)
     except ValueError:  # not the main thread: no signal handling
         handlers = {}
+    from .monitor import Monitor
+
+    monitor = Monitor(trainer)
+    trainer.callbacks.append(monitor)
     try:
         trainer.fit(progress, on_step_end)
         for name, p in trainer.field.named_parameters():
@@ -240,6 +256,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
                 raise TrainingError(f"parameter {name} became non-finite during training; try a lower --lr")
         save()
     finally:
+        monitor.close()
         for s, h in handlers.items():
             signal.signal(s, h)
     _fault("after_train")
@@ -252,6 +269,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         "lpips": results["lpips"],
         "iters": cfg.iters,
         "train_seconds": trainer.train_seconds,
+        "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),
         "train_view_ids": trainer.views.ids,
@@ -269,15 +287,20 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         **task.metrics(trainer),
     }
     write_json(os.path.join(out_dir, "history.json"), trainer.history)
-    from . import plots
+    from . import plots, video
 
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
                                {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
-                                "training batch PSNR (dB)": trainer.history["psnr"]},
+                                "training batch PSNR (dB)": trainer.history["psnr"],
+                                **({"held-out PSNR (dB)": trainer.history["heldout"]} if trainer.history["heldout"] else {}),
+                                "encoding Lipschitz bound L_Psi (eq. 17)": trainer.history["lipschitz"]},
                                title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
-        render_turntable(trainer, os.path.join(out_dir, "turntable.gif"), cfg.video_frames, progress)
+        video.render_run_video(trainer, out_dir, cfg.video_frames, progress)  # turntable.mp4 (.gif without ffmpeg)
+    from .trainer import peak_rss_mb
+
+    metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
     metrics["total_seconds"] = time.perf_counter() - t_start
     metrics["config_hash"] = config_hash(cfg)
     # written once, last and atomically: its presence marks the folder finished
@@ -303,6 +326,7 @@ def evaluate_run(run_dir: str, progress: bool = True, device: Optional[str] = No
         dev = devmod.resolve_device(cfg.device)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    _configure_lpips(cfg)
     state = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location="cpu")
     if state.get("config_hash") != metrics["config_hash"]:
         raise ConfigError(f"{run_dir}/checkpoint.pt belongs to another configuration than {run_dir}/metrics.json")

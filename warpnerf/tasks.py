@@ -119,7 +119,8 @@ class PoseTask(Task):
 
     def __init__(self, cfg: TrainConfig):
         super().__init__(cfg)
-        self.history: dict[str, list] = {"step": [], "rot_err_deg": [], "trans_err_x100": []}
+        # trans_err_x100 is BARF's (aligned w2c translations), centre_err_x100 the camera-centre distance
+        self.history: dict[str, list] = {"step": [], "rot_err_deg": [], "trans_err_x100": [], "centre_err_x100": []}
         self.initial: dict = {}
         self.final: dict = {}
 
@@ -143,7 +144,7 @@ class PoseTask(Task):
         self.correction = PoseCorrection(gt.shape[0]).to(trainer.device)
         self.optimizer = torch.optim.Adam(self.correction.parameters(), lr=self.cfg.pose_lr)
         init = evaluate_poses(self.noisy_c2w, self.gt_c2w)
-        self.initial = {"rot_err_deg": init["rot_err_deg"], "trans_err_x100": init["trans_err_x100"]}
+        self.initial = {k: init[k] for k in ("rot_err_deg", "trans_err_x100", "centre_err_x100")}
         self._record(0)
 
     def state_dict(self) -> dict:
@@ -176,6 +177,7 @@ class PoseTask(Task):
         self.history["step"].append(step)
         self.history["rot_err_deg"].append(ev["rot_err_deg"])
         self.history["trans_err_x100"].append(ev["trans_err_x100"])
+        self.history["centre_err_x100"].append(ev["centre_err_x100"])
         return ev
 
     def after_step(self, trainer: "Trainer", step: int) -> dict:
@@ -206,8 +208,11 @@ class PoseTask(Task):
             "trans_err_x100": ev["trans_err_x100"],
             "rot_err_deg_per_view": ev["rot_err_deg_per_view"],
             "trans_err_x100_per_view": ev["trans_err_x100_per_view"],
+            "centre_err_x100": ev["centre_err_x100"],
+            "centre_err_x100_per_view": ev["centre_err_x100_per_view"],
             "initial_rot_err_deg": self.initial["rot_err_deg"],
             "initial_trans_err_x100": self.initial["trans_err_x100"],
+            "initial_centre_err_x100": self.initial["centre_err_x100"],
             "pose_noise_rot": self.sigmas[0],
             "pose_noise_trans": self.sigmas[1],
             "pose_error_history": self.history,

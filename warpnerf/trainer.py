@@ -45,6 +45,9 @@ class Trainer:
         views = task.train_views(scene)
         self.views = views
         self.images = views.images.to(self.device)
+        # random backgrounds need each pixel's alpha; scenes without one keep their fixed background
+        self.alpha = views.alpha.to(self.device) if cfg.random_background and views.alpha is not None else None
+        self.background = torch.tensor(scene.background, dtype=torch.float32, device=self.device)
         self.train_c2w = views.c2w.to(self.device)
         encoder = make_grid_encoder(cfg, generator=torch.Generator().manual_seed(cfg.seed))
         self.field = GridField(scene.aabb, encoder, cfg.hidden, cfg.geo_features).to(self.device)
@@ -58,13 +61,18 @@ class Trainer:
             ray_transform = lambda o, d: ndc_rays(o, d, f, w, h, near=1.0)  # noqa: E731
         far = math.inf if scene.ndc else scene.far
         self.renderer = Renderer(self.field, self.occupancy, scene.near, far, cfg.render_step or default_step(scene.aabb, cfg.march_steps),
-                                 scene.background, cfg.max_samples_per_ray, ray_transform)
+                                 scene.background, cfg.max_samples_per_ray, ray_transform,
+                                 sample_budget=cfg.sample_budget)
         self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp), cfg.lr)
         self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
         self.n_rays = cfg.batch_rays
+        # linear lr warm-up from 1 % (nerfacc): at lr 1e-2 and 2^16 samples a step, thin scenes (mic)
+        # diverge without it; capped at a tenth of the run so that short runs keep most of their steps
+        self.lr_warmup = min(cfg.lr_warmup, cfg.iters // 10)
         self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": []}
         self.train_seconds = 0.0
         self.step = 0  # the next step to run (a resumed run starts past 0)
+        self.callbacks: list = []  # called as cb(trainer, step, stats) after every step (warpnerf.monitor)
         task.setup(self)
 
     # --- training ---------------------------------------------------------------------------
@@ -81,22 +89,40 @@ class Trainer:
         # sort by view so consecutive rays (and their samples) come from one camera: better locality
         order = torch.argsort(idx * (h * w) + py * w + px)
         idx, px, py = idx[order], px[order], py[order]
-        return idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px]
+        return idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], (idx, py, px)
 
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
         weights = self.level_weights(step)
         # the grid thresholds optical thickness sigma * step (instant-ngp / nerfacc), not raw sigma
-        self.occupancy.maybe_update(step, lambda x: self.field.density(x, weights) * self.renderer.step, self.gen)
-        idx, u, v, target = self.sample_pixels(self.n_rays)
+        if self.occupancy.maybe_update(step, lambda x: self.field.density(x, weights) * self.renderer.step, self.gen):
+            if not bool(self.occupancy.bitfield.any()):
+                # an update that empties the grid leaves no sample and so no gradient to recover
+                # from: re-open every cell and let the next updates prune again
+                self.occupancy.bitfield.fill_(1)
+        idx, u, v, target, pix = self.sample_pixels(self.n_rays)
         c2w = self.task.camera_poses(self, idx)
         o, d = pixel_rays(c2w, u, v, self.views.focal, self.views.cx, self.views.cy)
         jitter = torch.rand(o.shape[0], generator=self.gen, device=self.device)
-        out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights, jitter)
-        loss = torch.nn.functional.mse_loss(out.rgb, target)
+        background = None
+        if self.alpha is not None:
+            # the target was composited on the scene's background: swap it for a random one per ray,
+            # so a transparent field cannot pass for the (white) background (instant-ngp, nerfacc)
+            background = torch.rand(o.shape[0], 3, generator=self.gen, device=self.device)
+            target = target + (1.0 - self.alpha[pix])[:, None] * (background - self.background)
+        out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights, jitter, background)
+        # rays past the sample budget got no samples: leave them out of the loss
+        kept = out.n_rays
+        loss = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
+        with torch.no_grad():
+            # the loss of rendering nothing (background only) on the same pixels: see check_learning
+            bg = self.background.expand_as(target) if background is None else background
+            empty_loss = torch.nn.functional.mse_loss(bg[:kept], target[:kept])
         if not torch.isfinite(loss):
             raise TrainingError(f"non-finite loss ({loss.item()}) at step {step}; try a lower --lr")
         lr = cfg.lr * cfg.lr_final_ratio ** (step / max(cfg.iters - 1, 1))
+        if step < self.lr_warmup:
+            lr *= 0.01 + 0.99 * step / self.lr_warmup
         for g in self.optimizer.param_groups:
             g["lr"] = lr
         self.optimizer.zero_grad(set_to_none=True)
@@ -104,10 +130,27 @@ class Trainer:
         self.optimizer.step()
         self.task.optimizer_step(self, step)
         # adapt the ray count so a step costs about target_samples samples (instant-ngp)
-        spr = out.n_samples / max(o.shape[0], 1)
+        spr = out.n_samples / max(kept, 1)
         want = cfg.target_samples / max(spr, 1.0)
         self.n_rays = int(min(max(0.5 * self.n_rays + 0.5 * want, 256), 1 << 16))
-        return {"loss": loss.item(), "samples_per_ray": spr}
+        return {"loss": loss.item(), "empty_loss": empty_loss.item(), "samples_per_ray": spr}
+
+    def check_learning(self, step: int, loss_ratio: float) -> None:
+        """Stop a run that is not learning, with one line naming the step and what to try.
+
+        ``loss_ratio`` is the recent training loss over the loss of rendering background only on
+        the same pixels. A field that stays near 1 after the lr and occupancy warm-ups has
+        collapsed to empty space (or diverged): more steps will not help."""
+        cfg = self.cfg
+        start = max(self.lr_warmup, cfg.occ_warmup) + 200
+        if cfg.learn_guard and step >= start and loss_ratio > 0.5:
+            raise TrainingError(
+                f"not learning at step {step}: the training loss is {loss_ratio:.2f}x that of rendering the "
+                f"background only; try a lower --lr (now {cfg.lr:g}) or a longer --lr-warmup")
+        peak = peak_rss_mb()
+        if peak > cfg.memory_budget_mb:
+            raise TrainingError(f"peak memory {peak:.0f} MB exceeds memory_budget_mb = {cfg.memory_budget_mb} at step "
+                                f"{step}; lower sample_budget or --downscale the images")
 
     def fit(self, progress: bool = True, on_step_end: Optional[Callable[[int], None]] = None) -> None:
         """Run steps ``self.step`` .. ``cfg.iters - 1``; ``on_step_end(n_done)`` after each one
@@ -118,8 +161,13 @@ class Trainer:
         bar = tqdm(range(self.step, cfg.iters), desc=f"train {self.scene.name}/{cfg.task}", disable=not progress,
                    dynamic_ncols=True, mininterval=0.5, initial=self.step, total=cfg.iters)
         t0 = time.perf_counter()
+        ratio = None
         for step in bar:
             stats = self.train_step(step)
+            r = stats["loss"] / max(stats["empty_loss"], 1e-12)
+            ratio = r if ratio is None else 0.9 * ratio + 0.1 * r
+            if step % cfg.log_every == 0:
+                self.check_learning(step, ratio)
             extra = self.task.after_step(self, step)
             if step % cfg.log_every == 0 or step == cfg.iters - 1:
                 psnr = M.psnr_from_mse(stats["loss"])
@@ -130,12 +178,15 @@ class Trainer:
                 bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{psnr:.2f}", rays=self.n_rays,
                                 spr=f"{stats['samples_per_ray']:.0f}", occ=f"{self.occupancy.occupied_fraction():.3f}",
                                 lv=self.schedule.active_levels(step), **extra)
+            for callback in self.callbacks:
+                callback(self, step, stats)
             self.step = step + 1
             if on_step_end is not None:
                 self.train_seconds += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 on_step_end(self.step)
         self.train_seconds += time.perf_counter() - t0
+
 
     # --- checkpoints ------------------------------------------------------------------------
 

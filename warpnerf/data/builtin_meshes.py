@@ -309,9 +309,48 @@ def vase_mesh() -> SceneMesh:
     return mb.build()
 
 
+def stand_mesh() -> SceneMesh:
+    """A studio microphone on a stand (mic- and ficus-like): a thin pole and boom, a grille head
+    woven from wires about a pixel wide at 200x200, and a cable. Most of every view is background,
+    the case where a field can collapse to empty space and the occupancy grid with it."""
+    mb = MeshBuilder()
+    steel = mb.material(Material(SOLID, (0.55, 0.57, 0.60)))
+    black = mb.material(Material(SOLID, (0.07, 0.07, 0.08)))
+    gold = mb.material(Material(STRIPES, (0.80, 0.62, 0.25), (0.35, 0.25, 0.10), freq=30.0, axis=2))
+    wire = mb.material(Material(SOLID, (0.85, 0.85, 0.82)))
+
+    mb.frustum((0.0, 0.0, -1.12), (0.0, 0.0, -1.08), 0.42, 0.38, black, segments=48)
+    mb.cylinder((0.0, 0.0, -1.08), (0.0, 0.0, 0.10), 0.018, steel, segments=12)
+    joint = np.array([0.0, 0.0, 0.10])
+    mb.sphere(joint, 0.04, black, segments=16)
+    head = np.array([0.38, 0.0, 0.55])
+    mb.cylinder(joint, head - np.array([0.08, 0.0, 0.10]), 0.014, steel, segments=12)
+    # body under the head, then the grille: latitude rings and meridians of thin wire
+    mb.frustum(head - np.array([0.0, 0.0, 0.42]), head - np.array([0.0, 0.0, 0.16]), 0.07, 0.10, gold, segments=32)
+    r = 0.16
+    t = np.linspace(0.0, 2 * np.pi, 97)
+    for lat in np.linspace(-0.8, 0.8, 7):
+        ring = np.stack([r * np.cos(lat) * np.cos(t), r * np.cos(lat) * np.sin(t), np.full_like(t, r * np.sin(lat))], -1)
+        mb.tube(head + ring, 0.006, wire, segments=6)
+    ph = np.linspace(-np.pi / 2, np.pi / 2, 49)
+    for lon in np.linspace(0.0, np.pi, 6, endpoint=False):
+        arc = np.stack([r * np.cos(ph) * np.cos(lon), r * np.cos(ph) * np.sin(lon), r * np.sin(ph)], -1)
+        full = np.concatenate([arc, (arc * np.array([-1.0, -1.0, 1.0]))[::-1]])
+        mb.tube(head + full, 0.006, wire, segments=6)
+    # the cable hangs from the body down to the base in a loose curve
+    s = np.linspace(0.0, 1.0, 80)
+    start, end = head - np.array([0.0, 0.0, 0.42]), np.array([0.25, 0.2, -1.05])
+    cable = start[None] * (1 - s[:, None]) + end[None] * s[:, None]
+    cable[:, 0] += 0.25 * np.sin(np.pi * s)
+    cable[:, 1] += 0.15 * np.sin(2 * np.pi * s)
+    mb.tube(cable, 0.01, black, segments=6)
+    return mb.build()
+
+
 # name -> (builder, one-line description); the order is the order users see.
 SCENES = {
     "chair": (chair_mesh, "wooden chair with a woven cushion: smooth shapes, wood grain and a fine fabric weave"),
     "lamp": (lamp_mesh, "desk lamp: thin stem and coiled cord, finely striped shade, marble base (high frequency)"),
     "vase": (vase_mesh, "glazed vase: one smooth surface of revolution, slowly varying colour (low frequency)"),
+    "stand": (stand_mesh, "microphone on a stand: thin pole, wire grille and cable over mostly empty views (thin structures)"),
 }

@@ -15,7 +15,7 @@ import torch
 from ..device import init_warp
 from .launch import aabb_floats, as_warp, launch_over_rays
 
-__all__ = ["march_rays", "PackedSamples"]
+__all__ = ["march_rays", "march_rays_within_budget", "PackedSamples", "rays_within_budget"]
 
 
 class PackedSamples(NamedTuple):
@@ -65,7 +65,6 @@ def march_rays(
         max_samples_per_ray: cap on the samples of one ray (the first ones along the ray are kept).
         jitter: optional (R,) float32 in [0, 1), per-ray shift of the first sample in units of
             ``step_size``; stratified training draws ``torch.rand(R, generator=g)``.
-
     Returns:
         :class:`PackedSamples` on the device of ``rays_o``. Not differentiable: the outputs carry
         no gradient w.r.t. the rays; recompute positions as ``o[ray] + t * d[ray]`` in torch.
@@ -75,6 +74,31 @@ def march_rays(
         >>> s = march_rays(o, d, (-1, -1, -1, 1, 1, 1), None, 1, near=0.0, far=10.0, step_size=0.5)
         >>> s.t_starts.tolist()
         [2.0, 2.5, 3.0, 3.5]
+    """
+    return march_rays_within_budget(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                                    max_samples_per_ray, jitter)[0]
+
+
+def march_rays_within_budget(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb: Sequence[float],
+    occ_bitfield: Optional[torch.Tensor],
+    occ_resolution: int,
+    near: float,
+    far: float,
+    step_size: float,
+    max_samples_per_ray: int = 1024,
+    jitter: Optional[torch.Tensor] = None,
+    max_total_samples: Optional[int] = None,
+) -> tuple[PackedSamples, int]:
+    """:func:`march_rays` with a cap on the packed samples of the whole batch (a memory bound).
+
+    When the rays would take more than ``max_total_samples`` samples, only the longest prefix of
+    rays that fits keeps its samples; the remaining rays get none (``ray_counts`` 0) and are never
+    filled, so the allocation stays within the budget whatever the occupancy grid holds. Returns
+    ``(samples, n)``: rays [0, n) were marched (n = R without a cap); callers that must not lose
+    rays march the rest in another call.
     """
     lo, hi = aabb_floats(aabb)
     _check_rays(rays_o, rays_d, jitter)
@@ -96,7 +120,7 @@ def march_rays(
     counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
     empty_f = torch.zeros(0, dtype=torch.float32, device=device)
     if num_rays == 0:
-        return PackedSamples(counts.clone(), empty_f, empty_f.clone(), counts.clone(), counts)
+        return PackedSamples(counts.clone(), empty_f, empty_f.clone(), counts.clone(), counts), 0
 
     wp = init_warp()
     from ..kernels.raymarch import march_rays as kernel
@@ -125,6 +149,14 @@ def march_rays(
     dummy_f = as_warp(torch.zeros(1, dtype=torch.float32, device=device))
     launch_over_rays(kernel, num_rays, head + [0, ws_offsets, ws_counts, dummy_i, dummy_f, dummy_f], device)
 
+    if max_total_samples is not None:
+        if int(max_total_samples) < 1:
+            raise ValueError(f"march_rays: max_total_samples must be >= 1, got {max_total_samples}")
+        # drop whole rays from the end so the fill pass never allocates more than the budget
+        keep = rays_within_budget(counts, int(max_total_samples))
+        counts[keep:] = 0
+    else:
+        keep = num_rays
     total = int(counts.sum(dtype=torch.int64))
     if total >= 2**31:
         raise ValueError(f"march_rays: {total} samples exceed int32 indexing; march fewer rays at once")
@@ -136,7 +168,14 @@ def march_rays(
     if total > 0:
         outs = [as_warp(ray_indices), as_warp(t_starts), as_warp(t_ends)]
         launch_over_rays(kernel, num_rays, head + [1, ws_offsets, ws_counts, *outs], device)
-    return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts)
+    return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts), keep
+
+
+def rays_within_budget(ray_counts: torch.Tensor, max_total_samples: int) -> int:
+    """Length of the longest prefix of rays whose (R,) ``ray_counts`` sum to at most
+    ``max_total_samples``."""
+    csum = torch.cumsum(ray_counts, 0, dtype=torch.int64)
+    return int(torch.searchsorted(csum, torch.tensor([max_total_samples], device=csum.device), right=True)[0])
 
 
 def _check_rays(rays_o, rays_d, jitter) -> None:
