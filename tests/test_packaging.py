@@ -14,7 +14,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # import name -> distribution name, where they differ
 DIST = {"warp": "warp-lang", "PIL": "pillow", "mpl_toolkits": "matplotlib", "tomli": "tomli", "skimage": "scikit-image",
-        "imageio_ffmpeg": "imageio-ffmpeg"}
+        "imageio_ffmpeg": "imageio-ffmpeg", "tomli_w": "tomli-w"}
 OPTIONAL = {"lpips"}  # imported inside try/except, used only when its weights are present
 
 tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")

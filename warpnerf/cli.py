@@ -26,9 +26,9 @@ def _add_device(p: argparse.ArgumentParser) -> None:
 def _setup_device(args) -> str:
     from . import device
 
-    if args.threads is not None:
-        device.set_num_threads(args.threads)
     try:
+        if args.threads is not None:
+            device.set_num_threads(args.threads)
         return device.resolve_device(args.device)
     except ValueError as e:
         raise UserError(str(e)) from e
@@ -52,12 +52,25 @@ def cmd_bench(args) -> int:
 
 def cmd_train(args) -> int:
     from .cli_config import config_overrides
-    from .config import build_config
-    from .run import run_training
+    from .config import build_config, load_toml
+    from .run import read_run_config, run_training
 
     overrides = config_overrides(args)  # None = not given: the preset or --config file keeps its value
-    cfg = build_config(args.task, args.config, overrides)
-    metrics = run_training(cfg, progress=not args.quiet)
+    task = args.task
+    if args.resume:
+        # the run's own config, with whatever the command line changes on top (checked against it)
+        saved = read_run_config(args.resume)
+        task, overrides["out"] = saved.task, args.resume
+        file_values = load_toml(args.config) if args.config else {}
+        base = {k: v for k, v in saved.to_dict().items() if k != "task"}
+        overrides = {**base, **file_values, **{k: v for k, v in overrides.items() if v is not None}}
+        cfg = build_config(task, None, overrides)
+    else:
+        cfg = build_config(task, args.config, overrides)
+    metrics = run_training(cfg, progress=not args.quiet, overwrite=args.overwrite, resume=bool(args.resume),
+                           force=args.force)
+    if metrics.get("already_finished"):
+        return 0
     print(_summary(metrics))
     print(f"run folder: {cfg.run_dir()}")
     return 0
@@ -75,7 +88,7 @@ def cmd_eval(args) -> int:
     from .run import evaluate_run
 
     _setup_device(args)
-    res = evaluate_run(args.run, progress=not args.quiet)
+    res = evaluate_run(args.run, progress=not args.quiet, device=args.device)
     print(f"PSNR {res['psnr']:.2f} dB; SSIM {res['ssim']:.3f}; written to {args.run}/eval/metrics.json")
     return 0
 
@@ -98,8 +111,15 @@ def cmd_table(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage mistakes as one line (the full usage of 'train' runs to 30 lines); --help shows the rest."""
+
+    def error(self, message: str):
+        self.exit(2, f"warpnerf: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="warpnerf", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="warpnerf", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show full tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -110,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(t)  # one flag per TrainConfig field (warpnerf/cli_config.py)
     t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
     t.add_argument("--quiet", action="store_true", help="no progress bars")
+    t.add_argument("--resume", metavar="RUN", default=None,
+                   help="continue the unfinished run folder RUN from its last checkpoint")
+    t.add_argument("--force", action="store_true", help="with --resume: accept a changed configuration")
+    t.add_argument("--overwrite", action="store_true", help="clear an existing run folder at --out first")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="re-evaluate a finished run folder")
@@ -158,15 +182,22 @@ def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
 
     user_errors: tuple = (UserError, ConfigError)
+    interrupted: tuple = ()
     try:
+        from .checkpoint import CheckpointError
         from .data.errors import DatasetError
+        from .run import TrainingInterrupted
         from .trainer import TrainingError
 
-        user_errors += (DatasetError, TrainingError)
+        user_errors += (DatasetError, TrainingError, CheckpointError)
+        interrupted = (TrainingInterrupted,)
     except ImportError:  # pragma: no cover - partial installs
         pass
     try:
         return int(args.func(args) or 0)
+    except interrupted as e:
+        print(f"warpnerf: {e}", file=sys.stderr)
+        return 130
     except user_errors as e:
         if args.debug:
             raise

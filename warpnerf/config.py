@@ -17,6 +17,7 @@ import functools
 import importlib
 import inspect
 import io
+import math
 import os
 import sys
 import textwrap
@@ -139,6 +140,8 @@ class TrainConfig:
     device: str = "auto"  # auto (cuda if Warp sees one, else cpu) | cpu | cuda | cuda:N
     threads: Optional[int] = None  # CPU threads for Warp launches (unset: $WARPNERF_THREADS or min(2, cores))
     log_every: int = 50  # steps between progress-bar metric refreshes
+    save_every: int = 500  # steps between periodic checkpoints (0: only at the end)
+    allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)
     # --- monitoring and metrics (warpnerf/monitor.py, warpnerf/metrics.py) ---
     log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps (pip install 'warpnerf[log]')
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
@@ -278,7 +281,7 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
     if cfg.batch_rays < 1 or cfg.target_samples < 1:
         raise ConfigError("batch_rays and target_samples must be >= 1")
-    for name in ("model", "g2fr_mask", "log"):  # task: tasks.get_task names the choices
+    for name in ("task", "model", "g2fr_mask", "log"):
         check_choice(name, getattr(cfg, name))
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
@@ -290,3 +293,25 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"sample_budget ({cfg.sample_budget}) must be >= max_samples_per_ray ({cfg.max_samples_per_ray})")
     if cfg.eval_every < 1:
         raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")
+    # one line naming the key for every value out of range, before any data loads or folder is written
+    at_least = {"threads": 1, "n_views": 1, "log_every": 1, "levels": 1, "features": 1, "hidden": 1,
+                "occ_resolution": 1, "occ_update_every": 1, "march_steps": 1, "max_samples_per_ray": 1,
+                "base_resolution": 1, "max_resolution": 1, "cp_rank": 1, "cp_max_resolution": 1,
+                "log2_table_size": 1, "save_every": 0, "eval_max_views": 0, "video_frames": 0,
+                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0}
+    for key, lo in at_least.items():
+        value = getattr(cfg, key)
+        if value is not None and value < lo:
+            raise ConfigError(f"{key} must be >= {lo}, got {value}")
+    positive = ("lr", "pose_lr", "pose_lr_final", "lr_final_ratio")
+    for key in positive:
+        value = getattr(cfg, key)
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(f"{key} must be a positive finite number, got {value}")
+    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step"):
+        value = getattr(cfg, key)
+        if value is not None and not (value >= 0 and math.isfinite(value)):
+            raise ConfigError(f"{key} must be a finite number >= 0, got {value}")
+    dev = cfg.device
+    if not (dev in ("auto", "cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
+        raise ConfigError(f"unknown device '{dev}': expected auto, cpu, cuda or cuda:N")

@@ -99,7 +99,7 @@ def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = No
                 done = finished_metrics(cfg) if reuse else None
                 if done is not None:
                     print(f"reusing the finished run in {run_dir}")
-                rows[scene][arm] = done if done is not None else run_training(cfg)
+                rows[scene][arm] = done if done is not None else run_training(cfg, overwrite=True)
             if task == "pose":
                 plot_pose_comparison(os.path.join(out, f"{scene}_pose_error.png"), scene, rows[scene])
         title = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)",

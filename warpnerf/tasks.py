@@ -59,6 +59,13 @@ class Task:
     def artifacts(self, trainer: "Trainer", out_dir: str) -> None:
         """Task plots and files written after evaluation."""
 
+    def state_dict(self) -> dict:
+        """The task's own training state for checkpoints (tensors, numbers, lists, dicts)."""
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what :meth:`state_dict` returned."""
+
 
 class FullTask(Task):
     name = "full"
@@ -140,6 +147,15 @@ class PoseTask(Task):
         self.initial = {k: init[k] for k in ("rot_err_deg", "trans_err_x100", "centre_err_x100")}
         self._record(0)
 
+    def state_dict(self) -> dict:
+        return {"correction": self.correction.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "history": self.history}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.correction.load_state_dict(state["correction"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.history = {k: list(v) for k, v in state["history"].items()}
+
     def current_c2w(self) -> torch.Tensor:
         return self.correction(self.noisy_c2w)
 
@@ -181,7 +197,9 @@ class PoseTask(Task):
         mapped = map_gt_poses_to_estimate_frame(views.c2w.to(trainer.device).double(), ev["sim3"]).float()
         if self.cfg.pose_refine_steps <= 0:
             return mapped
-        return trainer.refine_poses(mapped, views)
+        from .evaluate import refine_poses
+
+        return refine_poses(trainer, mapped, views)
 
     def metrics(self, trainer: "Trainer") -> dict:
         ev = self.final

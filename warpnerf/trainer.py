@@ -1,19 +1,20 @@
-"""A thin training loop: sample pixels, render, MSE, Adam. Tasks supply views, poses and evaluation."""
+"""A thin training loop: sample pixels, render, MSE, Adam; its state for checkpoints.
+
+Tasks supply views and poses through hooks; evaluation, pose refinement, the turntable and file
+helpers live in :mod:`warpnerf.evaluate`.
+"""
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
-from typing import Optional
+from typing import Callable, Optional
 
-import numpy as np
 import torch
 
 from . import metrics as M
-from .config import TrainConfig, exp_decay
-from .data.scene import Scene, Views
+from .config import TrainConfig
+from .data.scene import Scene
 from .encoders import make_grid_encoder
 from .field import GridField
 from .freq_mask import G2fRSchedule
@@ -70,6 +71,7 @@ class Trainer:
         self.lr_warmup = min(cfg.lr_warmup, cfg.iters // 10)
         self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": []}
         self.train_seconds = 0.0
+        self.step = 0  # the next step to run (a resumed run starts past 0)
         self.callbacks: list = []  # called as cb(trainer, step, stats) after every step (warpnerf.monitor)
         task.setup(self)
 
@@ -150,12 +152,14 @@ class Trainer:
             raise TrainingError(f"peak memory {peak:.0f} MB exceeds memory_budget_mb = {cfg.memory_budget_mb} at step "
                                 f"{step}; lower sample_budget or --downscale the images")
 
-    def fit(self, progress: bool = True) -> None:
+    def fit(self, progress: bool = True, on_step_end: Optional[Callable[[int], None]] = None) -> None:
+        """Run steps ``self.step`` .. ``cfg.iters - 1``; ``on_step_end(n_done)`` after each one
+        (checkpoints, interrupts). A resumed trainer continues where its state left off."""
         from tqdm.auto import tqdm
 
         cfg = self.cfg
-        bar = tqdm(range(cfg.iters), desc=f"train {self.scene.name}/{cfg.task}", disable=not progress,
-                   dynamic_ncols=True, mininterval=0.5)
+        bar = tqdm(range(self.step, cfg.iters), desc=f"train {self.scene.name}/{cfg.task}", disable=not progress,
+                   dynamic_ncols=True, mininterval=0.5, initial=self.step, total=cfg.iters)
         t0 = time.perf_counter()
         ratio = None
         for step in bar:
@@ -176,129 +180,38 @@ class Trainer:
                                 lv=self.schedule.active_levels(step), **extra)
             for callback in self.callbacks:
                 callback(self, step, stats)
-        self.train_seconds = time.perf_counter() - t0
+            self.step = step + 1
+            if on_step_end is not None:
+                self.train_seconds += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                on_step_end(self.step)
+        self.train_seconds += time.perf_counter() - t0
 
-    # --- evaluation -------------------------------------------------------------------------
-
-    def refine_poses(self, c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
-        """Photometric refinement of (N, 3, 4) poses against ``views``' images with the field frozen
-        (BARF's test-time pose optimisation). Returns refined (N, 3, 4) poses.
-
-        All views are refined together: every step renders ``rays_per_step`` random pixels of each
-        view and takes one Adam step on the per-view corrections (rows are independent, so this
-        equals refining each view alone, with fewer launches). ``pose_refine_steps`` steps, learning
-        rate decaying exponentially from ``pose_lr`` to ``pose_lr_final`` as in training: at a
-        constant rate the last steps leave each pose jittering by about one learning rate."""
-        from .cameras import PoseCorrection
-
-        n_views, n_steps = c2w.shape[0], self.cfg.pose_refine_steps
-        weights = self.level_weights(self.cfg.iters)
-        corr = PoseCorrection(n_views).to(self.device)
-        opt = torch.optim.Adam(corr.parameters(), lr=self.cfg.pose_lr)
-        images = views.images.to(self.device)
-        gen = torch.Generator(device=self.device).manual_seed(self.cfg.seed + 7)
-        idx = torch.arange(n_views, device=self.device).repeat_interleave(rays_per_step)
-        for p in self.field.parameters():
-            p.requires_grad_(False)
-        try:
-            for i in range(n_steps):
-                for g in opt.param_groups:
-                    g["lr"] = exp_decay(self.cfg.pose_lr, self.cfg.pose_lr_final, i / max(n_steps - 1, 1))
-                py = torch.randint(0, views.height, idx.shape, generator=gen, device=self.device)
-                px = torch.randint(0, views.width, idx.shape, generator=gen, device=self.device)
-                o, d = pixel_rays(corr(c2w[idx], idx), px.float() + 0.5, py.float() + 0.5, views.focal, views.cx,
-                                  views.cy)
-                out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
-                # sum of per-view means: each view's gradient is what refining it alone would see
-                loss = torch.nn.functional.mse_loss(out.rgb, images[idx, py, px], reduction="sum") / (3 * rays_per_step)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-        finally:
-            for p in self.field.parameters():
-                p.requires_grad_(True)
-        with torch.no_grad():
-            return corr(c2w)
-
-    def eval_views(self) -> Views:
-        test = self.scene.test
-        pick = list(range(0, len(test), self.cfg.eval_every))
-        if self.cfg.eval_max_views:
-            pick = pick[: self.cfg.eval_max_views]
-        return test.subset(pick)
-
-    def evaluate(self, out_dir: Optional[str] = None, progress: bool = True) -> dict:
-        from tqdm.auto import tqdm
-
-        views = self.eval_views()
-        poses = self.task.eval_poses(self, views)
-        weights = self.level_weights(self.cfg.iters)
-        psnrs, ssims, lpips, secs, depth_errs = [], [], [], [], []
-        if views.depth is not None:
-            z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
-        if out_dir:
-            os.makedirs(os.path.join(out_dir, "renders"), exist_ok=True)
-        for k in tqdm(range(len(views)), desc="evaluate", disable=not progress, dynamic_ncols=True):
-            t0 = time.perf_counter()
-            img = self.renderer.render_image(poses[k], views.height, views.width, views.focal, views.cx, views.cy,
-                                             weights)
-            secs.append(time.perf_counter() - t0)
-            pred, gt = img["rgb"].clamp(0, 1).cpu(), views.images[k]
-            psnrs.append(M.psnr(pred, gt))
-            ssims.append(M.ssim(pred, gt))
-            lpips.append(M.lpips_or_none(pred, gt))
-            if views.depth is not None:
-                # ground truth is camera-z depth (0 = background); ours is distance along the unit ray
-                fg = views.depth[k] > 0
-                pred_z = img["depth"].cpu() * z_scale
-                depth_errs.append(float((pred_z[fg] - views.depth[k][fg]).abs().mean()) if fg.any() else 0.0)
-            if out_dir:
-                save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}.png"),
-                         torch.cat([pred, gt], dim=1))
-                save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}_depth.png"),
-                         depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu()))
-        return {
-            "psnr": float(np.mean(psnrs)),
-            "ssim": float(np.mean(ssims)),
-            "lpips": None if any(v is None for v in lpips) else float(np.mean(lpips)),
-            "psnr_per_view": psnrs,
-            "eval_view_ids": views.ids,
-            "render_seconds_per_view": float(np.mean(secs)),
-            # mean |depth error| over ground-truth foreground pixels, scene units (built-in scenes)
-            "depth_mae": float(np.mean(depth_errs)) if depth_errs else None,
-            "eval_resolution": [views.height, views.width],
-        }
-
-    def render_turntable(self, path: str, frames: int, progress: bool = True) -> None:
-        """A GIF orbiting the scene along the test path (Blender scenes) or the training cameras."""
-        import imageio.v2 as imageio
-        from tqdm.auto import tqdm
-
-        src = self.scene.test if len(self.scene.test) >= frames else self.scene.train
-        pick = np.linspace(0, len(src) - 1, frames).round().astype(int)
-        weights = self.level_weights(self.cfg.iters)
-        images = []
-        for k in tqdm(pick, desc="video", disable=not progress, dynamic_ncols=True):
-            c2w = src.c2w[k].to(self.device)
-            img = self.renderer.render_image(c2w, src.height, src.width, src.focal, src.cx, src.cy, weights)
-            images.append((img["rgb"].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8))
-        imageio.mimsave(path, images, duration=0.08, loop=0)
 
     # --- checkpoints ------------------------------------------------------------------------
 
     def state_dict(self) -> dict:
-        state = {"field": self.field.state_dict(), "occ_density": self.occupancy.density,
-                 "occ_bitfield": self.occupancy.bitfield}
-        if hasattr(self.task, "correction"):
-            state["pose_correction"] = self.task.correction.state_dict()
-        return state
+        """Everything needed to continue training bit-identically (and to evaluate): step, field,
+        Adam state, occupancy grid, RNG streams, adaptive ray count, history, the task's state."""
+        from .checkpoint import rng_state
+
+        return {"step": self.step, "field": self.field.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
+                "rng": rng_state(self.gen), "n_rays": self.n_rays, "history": self.history,
+                "train_seconds": self.train_seconds, "task": self.task.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
+        from .checkpoint import set_rng_state
+
         self.field.load_state_dict(state["field"])
         self.occupancy.density.copy_(state["occ_density"])
         self.occupancy.bitfield.copy_(state["occ_bitfield"])
-        if "pose_correction" in state and hasattr(self.task, "correction"):
-            self.task.correction.load_state_dict(state["pose_correction"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        set_rng_state(state["rng"], self.gen)
+        self.step, self.n_rays = int(state["step"]), int(state["n_rays"])
+        self.history = {k: list(v) for k, v in state["history"].items()}
+        self.train_seconds = float(state.get("train_seconds", 0.0))
+        self.task.load_state_dict(state["task"])
 
 
 def peak_rss_mb() -> float:
@@ -311,32 +224,3 @@ def peak_rss_mb() -> float:
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
-
-
-def camera_z_scale(height: int, width: int, focal: float, cx: float, cy: float) -> torch.Tensor:
-    """(H, W) factor turning distance along a pixel's unit ray into camera-z depth."""
-    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
-    return 1.0 / torch.sqrt(((u - cx) / focal) ** 2 + ((v - cy) / focal) ** 2 + 1.0)
-
-
-def save_png(path: str, img: torch.Tensor) -> None:
-    import imageio.v2 as imageio
-
-    imageio.imwrite(path, (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
-
-
-def depth_to_rgb(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
-    """Grey-scale depth (near = bright) on a white background, (H, W, 3)."""
-    valid = opacity > 0.5
-    if valid.any():
-        lo, hi = depth[valid].min(), depth[valid].max()
-        g = 1.0 - (depth - lo) / (hi - lo).clamp_min(1e-6)
-    else:
-        g = torch.zeros_like(depth)
-    g = torch.where(valid, g * 0.9, torch.ones_like(g))
-    return g[..., None].expand(*g.shape, 3)
-
-
-def write_json(path: str, data: dict) -> None:
-    with open(path, "w") as fh:
-        json.dump(data, fh, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))

@@ -259,7 +259,7 @@ def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool
     depth map (near = bright, background white) beside the RGB when ``depth``."""
     from tqdm.auto import tqdm
 
-    from .trainer import depth_to_rgb
+    from .evaluate import depth_to_rgb
 
     weights = trainer.level_weights(trainer.cfg.iters)
     out = []

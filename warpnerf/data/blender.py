@@ -24,7 +24,7 @@ import os
 import numpy as np
 import torch
 
-from warpnerf.data.errors import DatasetError
+from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
 from warpnerf.data.scene import Scene, Views
 
@@ -39,6 +39,7 @@ def load_blender(
     white_background: bool = True,
     keep_alpha: bool = True,
     name: str | None = None,
+    allow_rgb: bool = False,
 ) -> Scene:
     """Load a Blender-layout scene folder into a :class:`Scene` (source "dataset", kind "blender").
 
@@ -50,6 +51,8 @@ def load_blender(
         white_background: composite on white (the standard protocol) rather than black.
         keep_alpha: also return the (N, H, W) alpha in ``Views.alpha``.
         name: scene name (default: the folder name).
+        allow_rgb: accept images without alpha (one warning line). Off by default: the layout
+            promises RGBA, and RGB renders on black scored against a white background are garbage.
 
     Raises:
         DatasetError: missing folder or file, malformed JSON or missing key, unreadable
@@ -67,7 +70,7 @@ def load_blender(
         path = os.path.join(root, f"transforms_{split}.json")
         if split == "val" and not os.path.isfile(path):
             continue
-        views[split] = _load_split(root, path, downscale, bg, keep_alpha)
+        views[split] = _load_split(root, path, downscale, bg, keep_alpha, allow_rgb)
     return Scene(
         name=name or os.path.basename(os.path.normpath(root)),
         source="dataset",
@@ -112,6 +115,7 @@ def read_transforms(path: str) -> dict:
             raise DatasetError(f"{path}: frame {i} 'transform_matrix' is not a numeric 4x4 matrix") from None
         if m.shape not in ((4, 4), (3, 4)):
             raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
+        check_c2w(m, f"{path}: frame {i} 'transform_matrix'")
     return meta
 
 
@@ -139,7 +143,7 @@ def read_depth(path: str, depth_scale: float | None) -> np.ndarray:
     return raw.astype(np.float32) / float(depth_scale)
 
 
-def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool) -> Views:
+def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allow_rgb: bool = False) -> Views:
     meta = read_transforms(path)
     frames = meta["frames"]
     n = len(frames)
@@ -153,6 +157,13 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool) -> V
 
     first = read_image(paths[0])
     h0, w0 = first.shape[:2]
+    if first.shape[-1] != 4:
+        if not allow_rgb:
+            raise DatasetError(f"{paths[0]} has no alpha channel but the Blender layout promises RGBA "
+                               "(pass --allow-rgb to train on it as is)")
+        import sys
+
+        print(f"warpnerf: warning: {paths[0]} has no alpha channel; images are used as is", file=sys.stderr)
     h, w = h0 // downscale, w0 // downscale
     images = np.empty((n, h, w, 3), np.float32)
     alpha = np.empty((n, h, w), np.float32) if keep_alpha else None
@@ -166,6 +177,8 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool) -> V
                 f"image size mismatch: {img_path} is {img.shape[1]}x{img.shape[0]}, "
                 f"expected {w0}x{h0} like {paths[0]}"
             )
+        if (img.shape[-1] == 4) != (first.shape[-1] == 4):
+            raise DatasetError(f"channel mismatch: {img_path} has {img.shape[-1]} channels, {paths[0]} has {first.shape[-1]}")
         rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img, 3, -1)
         a = img[..., 3] if img.shape[-1] == 4 else np.ones((h0, w0), np.float32)
         # Composite before downscaling: compositing is linear in (rgb * a, a), so the order

@@ -33,7 +33,7 @@ import os
 import numpy as np
 import torch
 
-from warpnerf.data.errors import DatasetError
+from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
 from warpnerf.data.scene import Scene, Views
 
@@ -86,6 +86,14 @@ def load_llff(
     poses = pb[:, :15].reshape(-1, 3, 5)
     bounds = pb[:, 15:17]
     hwf = poses[0, :, 4]
+    # before recentring: one NaN would spread to every pose and the marcher would never stop
+    for i in range(len(poses)):
+        check_c2w(poses[i, :, :4], f"{pb_path}: pose {i}")
+    if not np.all(np.isfinite(bounds)) or not np.all(bounds > 0):
+        bad = int(np.nonzero(~(np.isfinite(bounds) & (bounds > 0)).all(1))[0][0])
+        raise DatasetError(f"{pb_path}: bounds of pose {bad} must be finite and positive, got {bounds[bad].tolist()}")
+    if not np.all(np.isfinite(hwf)) or not np.all(hwf > 0):
+        raise DatasetError(f"{pb_path}: height, width, focal of pose 0 must be positive, got {hwf.tolist()}")
 
     paths = _image_paths(root, factor, len(poses))
     first = read_image(paths[0])

@@ -95,6 +95,7 @@ def load_scene(
     llff_factor: int = 8,
     llff_holdout: int = 8,
     progress: bool = True,
+    allow_rgb: bool = False,
 ) -> Scene:
     """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
 
@@ -119,7 +120,8 @@ def load_scene(
         if layout == "blender":
             from warpnerf.data.blender import load_blender
 
-            return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
+            return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
+                                allow_rgb=allow_rgb)
         from warpnerf.data.llff import load_llff
 
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)

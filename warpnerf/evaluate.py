@@ -1,0 +1,162 @@
+"""Evaluation outside the training loop: test-view metrics and renders, BARF's test-time pose
+refinement, the turntable video and the run folder's file helpers.
+
+Every function takes a :class:`warpnerf.trainer.Trainer` and only reads it (field, renderer,
+scene, config); none changes training state, so a checkpoint saved before evaluation resumes
+to the same numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import TYPE_CHECKING, Optional
+
+import numpy as np
+import torch
+
+from . import metrics as M
+from .config import exp_decay
+from .data.scene import Views
+from .renderer import pixel_rays
+
+if TYPE_CHECKING:
+    from .trainer import Trainer
+
+
+
+def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
+    """Photometric refinement of (N, 3, 4) poses against ``views``' images with the field frozen
+    (BARF's test-time pose optimisation). Returns refined (N, 3, 4) poses.
+
+    All views are refined together: every step renders ``rays_per_step`` random pixels of each
+    view and takes one Adam step on the per-view corrections (rows are independent, so this
+    equals refining each view alone, with fewer launches). ``pose_refine_steps`` steps, learning
+    rate decaying exponentially from ``pose_lr`` to ``pose_lr_final`` as in training: at a
+    constant rate the last steps leave each pose jittering by about one learning rate."""
+    from .cameras import PoseCorrection
+
+    n_views, n_steps = c2w.shape[0], trainer.cfg.pose_refine_steps
+    weights = trainer.level_weights(trainer.cfg.iters)
+    corr = PoseCorrection(n_views).to(trainer.device)
+    opt = torch.optim.Adam(corr.parameters(), lr=trainer.cfg.pose_lr)
+    images = views.images.to(trainer.device)
+    gen = torch.Generator(device=trainer.device).manual_seed(trainer.cfg.seed + 7)
+    idx = torch.arange(n_views, device=trainer.device).repeat_interleave(rays_per_step)
+    for p in trainer.field.parameters():
+        p.requires_grad_(False)
+    try:
+        for i in range(n_steps):
+            for g in opt.param_groups:
+                g["lr"] = exp_decay(trainer.cfg.pose_lr, trainer.cfg.pose_lr_final, i / max(n_steps - 1, 1))
+            py = torch.randint(0, views.height, idx.shape, generator=gen, device=trainer.device)
+            px = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
+            o, d = pixel_rays(corr(c2w[idx], idx), px.float() + 0.5, py.float() + 0.5, views.focal, views.cx,
+                              views.cy)
+            out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
+            # sum of per-view means: each view's gradient is what refining it alone would see
+            loss = torch.nn.functional.mse_loss(out.rgb, images[idx, py, px], reduction="sum") / (3 * rays_per_step)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    finally:
+        for p in trainer.field.parameters():
+            p.requires_grad_(True)
+    with torch.no_grad():
+        return corr(c2w)
+
+def eval_views(trainer: "Trainer") -> Views:
+    test = trainer.scene.test
+    pick = list(range(0, len(test), trainer.cfg.eval_every))
+    if trainer.cfg.eval_max_views:
+        pick = pick[: trainer.cfg.eval_max_views]
+    return test.subset(pick)
+
+def evaluate(trainer: "Trainer", out_dir: Optional[str] = None, progress: bool = True) -> dict:
+    from tqdm.auto import tqdm
+
+    views = eval_views(trainer)
+    poses = trainer.task.eval_poses(trainer, views)
+    weights = trainer.level_weights(trainer.cfg.iters)
+    psnrs, ssims, lpips, secs, depth_errs = [], [], [], [], []
+    if views.depth is not None:
+        z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
+    if out_dir:
+        os.makedirs(os.path.join(out_dir, "renders"), exist_ok=True)
+    for k in tqdm(range(len(views)), desc="evaluate", disable=not progress, dynamic_ncols=True):
+        t0 = time.perf_counter()
+        img = trainer.renderer.render_image(poses[k], views.height, views.width, views.focal, views.cx, views.cy,
+                                         weights)
+        secs.append(time.perf_counter() - t0)
+        pred, gt = img["rgb"].clamp(0, 1).cpu(), views.images[k]
+        psnrs.append(M.psnr(pred, gt))
+        ssims.append(M.ssim(pred, gt))
+        lpips.append(M.lpips_or_none(pred, gt))
+        if views.depth is not None:
+            # ground truth is camera-z depth (0 = background); ours is distance along the unit ray
+            fg = views.depth[k] > 0
+            pred_z = img["depth"].cpu() * z_scale
+            depth_errs.append(float((pred_z[fg] - views.depth[k][fg]).abs().mean()) if fg.any() else 0.0)
+        if out_dir:
+            save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}.png"),
+                     torch.cat([pred, gt], dim=1))
+            save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}_depth.png"),
+                     depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu()))
+    return {
+        "psnr": float(np.mean(psnrs)),
+        "ssim": float(np.mean(ssims)),
+        "lpips": None if any(v is None for v in lpips) else float(np.mean(lpips)),
+        "psnr_per_view": psnrs,
+        "eval_view_ids": views.ids,
+        "render_seconds_per_view": float(np.mean(secs)),
+        # mean |depth error| over ground-truth foreground pixels, scene units (built-in scenes)
+        "depth_mae": float(np.mean(depth_errs)) if depth_errs else None,
+        "eval_resolution": [views.height, views.width],
+    }
+
+def render_turntable(trainer: "Trainer", path: str, frames: int, progress: bool = True) -> None:
+    """A GIF orbiting the scene along the test path (Blender scenes) or the training cameras."""
+    import imageio.v2 as imageio
+    from tqdm.auto import tqdm
+
+    src = trainer.scene.test if len(trainer.scene.test) >= frames else trainer.scene.train
+    pick = np.linspace(0, len(src) - 1, frames).round().astype(int)
+    weights = trainer.level_weights(trainer.cfg.iters)
+    images = []
+    for k in tqdm(pick, desc="video", disable=not progress, dynamic_ncols=True):
+        c2w = src.c2w[k].to(trainer.device)
+        img = trainer.renderer.render_image(c2w, src.height, src.width, src.focal, src.cx, src.cy, weights)
+        images.append((img["rgb"].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8))
+    imageio.mimsave(path, images, duration=0.08, loop=0)
+
+
+def camera_z_scale(height: int, width: int, focal: float, cx: float, cy: float) -> torch.Tensor:
+    """(H, W) factor turning distance along a pixel's unit ray into camera-z depth."""
+    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    return 1.0 / torch.sqrt(((u - cx) / focal) ** 2 + ((v - cy) / focal) ** 2 + 1.0)
+
+
+def save_png(path: str, img: torch.Tensor) -> None:
+    import imageio.v2 as imageio
+
+    imageio.imwrite(path, (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+
+
+def depth_to_rgb(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
+    """Grey-scale depth (near = bright) on a white background, (H, W, 3)."""
+    valid = opacity > 0.5
+    if valid.any():
+        lo, hi = depth[valid].min(), depth[valid].max()
+        g = 1.0 - (depth - lo) / (hi - lo).clamp_min(1e-6)
+    else:
+        g = torch.zeros_like(depth)
+    g = torch.where(valid, g * 0.9, torch.ones_like(g))
+    return g[..., None].expand(*g.shape, 3)
+
+
+def write_json(path: str, data: dict) -> None:
+    """JSON written atomically (temp file + fsync + rename): a crash never leaves half a file."""
+    from .checkpoint import atomic_write_text
+
+    atomic_write_text(path, json.dumps(data, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
