@@ -32,8 +32,10 @@ __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
 # backward level chunks: fixed (not the thread count) so the dx summation order never changes
 _BWD_LEVEL_CHUNKS = 2
-# Warp compiles one vector type of length R per rank; beyond this, registers and compile time explode
-_MAX_RANK = 256
+# Warp generates one kernel pair (and one vector type of length R) per (rank, dtype). A fixed set
+# of ranks keeps the kernels finite, so tests/test_cuda_compile.py can compile every one of them
+# for the GPU; beyond 64, registers and compile time explode.
+SUPPORTED_RANKS = (1, 2, 4, 8, 16, 32, 64)
 
 
 @dataclass(frozen=True)
@@ -70,8 +72,8 @@ class CPGridSpec:
                 raise TypeError(f"CPGridSpec: {name} must be an int, got {type(value).__name__}")
         if n_levels < 1:
             raise ValueError(f"CPGridSpec: need n_levels >= 1, got {n_levels}")
-        if not 1 <= rank <= _MAX_RANK:
-            raise ValueError(f"CPGridSpec: rank must be in [1, {_MAX_RANK}], got {rank}")
+        if rank not in SUPPORTED_RANKS:
+            raise ValueError(f"CPGridSpec: rank must be one of {SUPPORTED_RANKS}, got {rank}")
         if not 2 <= base_resolution <= max_resolution:
             raise ValueError(f"CPGridSpec: need 2 <= base_resolution <= max_resolution, got {base_resolution}, {max_resolution}")
         if max_resolution > 2**20:
