@@ -3,11 +3,11 @@
 Used by the ahead-of-time GPU compile test (``tests/test_cuda_compile.py``) and by
 ``warpnerf doctor --compile``, so neither keeps a hand-written list that could drift:
 
-* the grid encodings generate a forward/backward kernel pair per variant with the same
-  factories their launchers call (:func:`warpnerf.kernels.hashgrid.make_hashgrid_kernels`,
-  :func:`warpnerf.kernels.cpgrid.make_cpgrid_kernels`); the variants are the product of the
-  values their specs accept (``SUPPORTED_DIMS`` x ``SUPPORTED_FEATURES`` for the hash grid,
-  ``SUPPORTED_RANKS`` for the CP grid) and both float dtypes (float64 serves gradcheck);
+* the grid encodings generate a forward/backward kernel pair per variant; each op lists one
+  spec per variant it accepts (``kernel_variant_specs``: ``SUPPORTED_DIMS`` x
+  ``SUPPORTED_FEATURES`` for the hash grid, ``SUPPORTED_RANKS`` for the CP grid), and the
+  kernels come from the op launcher's own ``make_kernels``, in both float dtypes (float64
+  serves gradcheck);
 * the other ops use one fixed Warp module each (one file in ``kernels/``), listed in
   :data:`STATIC_KERNEL_MODULES`; a test checks that no kernel file is missing from it.
 
@@ -55,23 +55,16 @@ class KernelModule:
 def kernel_modules() -> list[KernelModule]:
     """All Warp modules of the package, grid variants first; see the module docstring."""
     wp = init_warp()
-    from ..kernels.cpgrid import make_cpgrid_kernels
-    from ..kernels.hashgrid import make_hashgrid_kernels
-    from .cpgrid import SUPPORTED_RANKS
-    from .hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES
+    from . import cpgrid, hashgrid
 
     out: list[KernelModule] = []
-    for dtype_name in GRID_DTYPE_NAMES:
-        dtype = getattr(wp, dtype_name)
-        for dim in SUPPORTED_DIMS:
-            for features in SUPPORTED_FEATURES:
-                fwd, bwd, _ = make_hashgrid_kernels(dim, features, dtype)
+    for op, grid in (("hashgrid", hashgrid), ("cpgrid", cpgrid)):
+        for dtype_name in GRID_DTYPE_NAMES:
+            for label, spec in grid.kernel_variant_specs():
+                # the very call the op's launcher makes for this spec and dtype
+                fwd, bwd, _ = grid._Launcher.make_kernels(spec, getattr(wp, dtype_name))
                 for kind, kernel in (("fwd", fwd), ("bwd", bwd)):
-                    out.append(KernelModule("hashgrid", f"dim={dim} F={features} {dtype_name} {kind}", kernel.module))
-        for rank in SUPPORTED_RANKS:
-            fwd, bwd, _ = make_cpgrid_kernels(rank, dtype)
-            for kind, kernel in (("fwd", fwd), ("bwd", bwd)):
-                out.append(KernelModule("cpgrid", f"R={rank} {dtype_name} {kind}", kernel.module))
+                    out.append(KernelModule(op, f"{label} {dtype_name} {kind}", kernel.module))
     for op, name in STATIC_KERNEL_MODULES.items():
         out.append(KernelModule(op, "", wp.get_module(importlib.import_module(name).__name__)))
     return out
