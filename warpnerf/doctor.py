@@ -104,16 +104,20 @@ def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None)
 
 
 def _in_kernel_cache(wp, km, arch: int | None) -> bool:
-    """Whether Warp's kernel cache holds this module's binary for the CPU (arch None) or an SM arch."""
-    ident = km.module.get_module_identifier()
-    folder = os.path.join(wp.config.kernel_cache_dir, ident)
-    if not os.path.isdir(folder):
-        return False
-    for f in os.listdir(folder):
-        if arch is None and f.startswith(ident) and f.endswith(".o"):
-            return True
-        if arch is not None and f.startswith(f"{ident}.sm{arch}") and f.endswith((".ptx", ".cubin")):
-            return True
+    """Whether Warp's kernel cache holds this module's binary for the CPU (arch None) or an SM arch.
+
+    The cache folder is named by a hash that includes the block size: CPU launches use 1, CUDA
+    the module default, so both identifiers are checked."""
+    for block_dim in (None, 1):
+        ident = km.module.get_module_identifier(block_dim)
+        folder = os.path.join(wp.config.kernel_cache_dir, ident)
+        if not os.path.isdir(folder):
+            continue
+        for f in os.listdir(folder):
+            if arch is None and f.startswith(ident) and f.endswith(".o"):
+                return True
+            if arch is not None and f.startswith(f"{ident}.sm{arch}") and f.endswith((".ptx", ".cubin")):
+                return True
     return False
 
 
