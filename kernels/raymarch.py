@@ -21,8 +21,18 @@ from .occupancy import cell_index, grid_coords
 
 wp.set_module_options({"enable_backward": False})
 
-# float(k) must be exact, so k stays below 2^24
-MAX_STEPS = wp.constant(16777216)
+# Hard cap on the candidate steps of one ray, whatever reaches the kernel: a ray the interval
+# test lets through by accident (NaN/inf that slips past it, a step far too small for the box)
+# costs at most this many steps instead of hanging the launch, which Ctrl-C cannot interrupt.
+# A unit-direction ray crossing the box diagonal takes 512 steps with the presets; the wrapper
+# rejects step sizes that would need more than MAX_STEPS along the diagonal.
+MAX_STEPS_PER_RAY = 65536
+MAX_STEPS = wp.constant(MAX_STEPS_PER_RAY)
+
+
+@wp.func
+def finite3(v: wp.vec3):
+    return wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])
 
 
 @wp.func
@@ -80,7 +90,8 @@ def march_rays(
     t0 = span[0]
     t1 = span[1]
     n = int(0)
-    if t1 > t0:
+    # a non-finite ray or interval is a miss (NaN poses, an unbounded interval): 0 samples
+    if finite3(o) and finite3(d) and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0:
         u = float(0.0)
         if has_jitter != 0:
             u = jitter[r]

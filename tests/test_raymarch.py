@@ -181,3 +181,33 @@ def test_sample_budget_keeps_a_prefix_of_whole_rays():
     assert cut.t_starts.shape[0] == int(csum[n - 1]) <= budget
     assert torch.equal(cut.ray_counts[:n], full.ray_counts[:n]) and int(cut.ray_counts[n:].sum()) == 0
     assert torch.equal(cut.t_starts, full.t_starts[: cut.t_starts.shape[0]])
+
+
+def test_non_finite_rays_return_quickly_with_no_samples():
+    """Issue 11: a NaN pose with an infinite far bound made every ray step ~16.7M times."""
+    import time
+
+    from warpnerf.kernels.raymarch import MAX_STEPS_PER_RAY as kernel_cap
+    from warpnerf.ops.raymarch import MAX_STEPS_PER_RAY
+    from warpnerf.ops.reference import raymarch as twin_mod
+
+    assert kernel_cap == MAX_STEPS_PER_RAY
+    nan, inf = float("nan"), float("inf")
+    o = torch.tensor([[nan, 0.0, -3.0], [0.0, 0.0, -3.0], [0.0, inf, -3.0], [0.0, 0.0, -3.0], [0.0, 0.0, -3.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [nan, nan, nan], [0.0, 0.0, 1.0], [inf, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    d[1, 2] = 1.0  # NaN only on two axes
+    march_rays(o, d, AABB, None, RES, near=0.0, far=math.inf, step_size=0.01)  # compile outside the timing
+    t0 = time.perf_counter()
+    s = march_rays(o, d, AABB, None, RES, near=0.0, far=math.inf, step_size=0.01)
+    seconds = time.perf_counter() - t0
+    assert s.ray_counts[:4].tolist() == [0, 0, 0, 0]
+    assert s.ray_counts[4] > 0  # the finite ray beside them is marched as usual
+    assert seconds < 5.0  # 5 rays; before the guard the NaN ray alone stepped 2^24 times
+    ref = twin_mod.march_rays(o, d, AABB, None, RES, near=0.0, far=math.inf, step_size=0.01)
+    assert torch.equal(ref.ray_counts, s.ray_counts) and torch.equal(ref.t_starts, s.t_starts)
+
+
+def test_step_too_small_for_the_step_cap_is_a_clear_error():
+    o, d = torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="steps along the box diagonal"):
+        march_rays(o, d, AABB, None, RES, near=0.0, far=10.0, step_size=1e-6)

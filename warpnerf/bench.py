@@ -1,7 +1,8 @@
 """Benchmarks that print measured numbers (``warpnerf bench ...``).
 
-Each benchmark times the Warp op and its pure-torch twin in the same process: median of
-several repeats after one warm-up run (which also absorbs Warp's kernel compilation).
+Each benchmark times the Warp op and its pure-torch twin in the same process, both the same
+way: median of ``repeats`` timed runs after ``warmup`` untimed ones (compilation, allocator and
+cache warm-up), with inputs and cotangents allocated once outside the timed runs.
 """
 
 from __future__ import annotations
@@ -15,8 +16,12 @@ import torch
 from . import device as devmod
 
 
-def median_seconds(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up: compilation, allocator, caches
+def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
+    """Median wall time of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls."""
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    for _ in range(max(warmup, 0)):  # compilation, allocator, caches
+        fn()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -42,7 +47,7 @@ def ray_like_points(n: int, samples_per_ray: int = 128, generator: torch.Generat
 
 
 def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_table_size: int = 19,
-                   repeats: int = 5, torch_repeats: int = 3, device: str = "cpu", seed: int = 0,
+                   repeats: int = 5, torch_repeats: int | None = None, device: str = "cpu", seed: int = 0,
                    model: str = "ngp", cp_rank: int = 8) -> dict:
     """Grid-encoding throughput (points/s) of the Warp op and its torch twin.
 
@@ -51,8 +56,9 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
     Cases: uniform random points (the headline numbers), ray-like coherent points, and the
     G²fR mask early in training (first 4 levels active). ``fwdbwd`` differentiates the grid
     only, as in NeRF training with fixed cameras; ``warp_fwdbwd_xgrad_pts_s`` adds the
-    gradient with respect to the points (pose task).
+    gradient with respect to the points (pose task). ``torch_repeats`` defaults to ``repeats``.
     """
+    torch_repeats = repeats if torch_repeats is None else torch_repeats
     wp_device = devmod.resolve_device(device)
     tdev = devmod.torch_device(wp_device)
     gen = torch.Generator().manual_seed(seed)
@@ -83,13 +89,18 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         if tdev.type == "cuda":
             torch.cuda.synchronize()
 
+    # the cotangent is allocated once: the timed runs hold only the op's own allocations
+    cotangent = torch.ones(n, spec.out_dim, device=tdev)
+
     def timed(encode, x, w, backward: bool, xgrad: bool = False, reps: int = repeats) -> float:
         def run():
             xi = x.requires_grad_(xgrad) if xgrad else x
             if backward:
-                table.grad = None
+                table.grad = None  # autograd then keeps the op's gradient tensor as .grad, no extra copy
+                if xgrad:
+                    xi.grad = None
                 out = encode(xi, table, spec, w)
-                out.backward(torch.ones_like(out))
+                out.backward(cotangent)
             else:
                 with torch.no_grad():
                     encode(xi, table, spec, w)
@@ -125,6 +136,7 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         "device": wp_device,
         "threads": devmod.num_threads() if wp_device == "cpu" else None,
         "repeats": repeats,
+        "torch_repeats": torch_repeats,
         "torch_threads": torch.get_num_threads(),
         **{k: head[k] for k in ("warp_fwd_pts_s", "warp_fwdbwd_pts_s", "warp_fwdbwd_xgrad_pts_s",
                                 "torch_fwd_pts_s", "torch_fwdbwd_pts_s", "ratio_fwd", "ratio_fwdbwd")},
@@ -173,14 +185,19 @@ def _twin_ops():
 
 
 def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", data_root: str | None = None,
-               torch_repeats: int = 2) -> dict:
+               torch_repeats: int | None = None) -> dict:
     """Training-step throughput on a standard batch.
 
     Trains the ``full`` preset for ``warmup_steps`` steps on lego (when ``data_root`` has it) or
     on the built-in chair, so the occupancy grid is realistic, then times ``repeats`` steps with
     the Warp ops and ``torch_repeats`` steps with every op replaced by its pure-torch twin (same
-    state, same batch size). Reports samples/s and iterations/s of both and their ratio.
+    state, same batch size; ``torch_repeats`` defaults to ``repeats``). Each backend gets one
+    untimed step first; rates are from the median step time. Reports samples/s and
+    iterations/s of both and their ratio.
     """
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    torch_repeats = repeats if torch_repeats is None else torch_repeats
     from .config import build_config
     from .run import load_scene_for
     from .tasks import make_task
@@ -199,18 +216,22 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
     trainer.occupancy.update_every = 1 << 30  # no grid updates inside the timed steps
 
     def timed(n: int, start: int) -> tuple[float, float]:
-        samples, t0 = 0.0, time.perf_counter()
-        for k in range(n):
+        """(median seconds per step, median samples per step) of n steps after one untimed step."""
+        times, samples = [], []
+        for k in range(n + 1):
             # train_step adapts the ray count; reset it so both backends see the same batch size
             trainer.n_rays = rays
+            t0 = time.perf_counter()
             stats = trainer.train_step(start + k)
-            samples += stats["samples_per_ray"] * rays
-        return time.perf_counter() - t0, samples
+            if k:
+                times.append(time.perf_counter() - t0)
+                samples.append(stats["samples_per_ray"] * rays)
+        return statistics.median(times), statistics.median(samples)
 
     start = warmup_steps
-    warp_s, warp_samples = timed(repeats, start)
+    warp_step, warp_samples = timed(repeats, start)
     with _twin_ops():
-        torch_s, torch_samples = timed(torch_repeats, start + repeats)
+        torch_step, torch_samples = timed(torch_repeats, start + repeats + 1)
     return {
         "benchmark": "step",
         "scene": scene.name,
@@ -218,12 +239,14 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
         "device": wp_device,
         "threads": devmod.num_threads(),
         "rays_per_step": rays,
-        "warp_iters_s": repeats / warp_s,
-        "warp_samples_s": warp_samples / warp_s,
-        "torch_iters_s": torch_repeats / torch_s,
-        "torch_samples_s": torch_samples / torch_s,
-        "ratio": (torch_s / torch_repeats) / (warp_s / repeats),
-        "samples_per_step": warp_samples / repeats,
+        "repeats": repeats,
+        "torch_repeats": torch_repeats,
+        "warp_iters_s": 1.0 / warp_step,
+        "warp_samples_s": warp_samples / warp_step,
+        "torch_iters_s": 1.0 / torch_step,
+        "torch_samples_s": torch_samples / torch_step,
+        "ratio": torch_step / warp_step,
+        "samples_per_step": warp_samples,
         "occupied_fraction": trainer.occupancy.occupied_fraction(),
     }
 

@@ -173,6 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .outputs_cli import add_output_commands  # render, export, view (commands on a finished run)
 
     add_output_commands(sub)
+    from . import doctor  # machine report; imports torch/warp only when it runs
+
+    doctor.add_parser(sub)
     return parser
 
 

@@ -9,7 +9,7 @@ we split work into chunks and run them on a small thread pool. The split rules a
   scatter into the same buffer.
 
 The chunking never depends on the number of threads, so results are bit-identical whether
-the chunks run on one thread or on several.
+the chunks run on one thread or on several (docs/design.md §3).
 """
 
 from __future__ import annotations

@@ -3,7 +3,9 @@ positional encoding, and spherical harmonics for view directions.
 
 G²fR masks the levels of the two grid encoders, the hash grid (``HashGridEncoder``, Instant-NGP)
 and the multi-resolution CP decomposition (``CPGridEncoder``, the paper's Mtrf): their
-``forward(x, level_weights)`` takes the per-level weights of :class:`warpnerf.freq_mask.G2fRSchedule`.
+``forward(x, level_weights)`` takes the per-level weights of :class:`warpnerf.freq_mask.G2fRSchedule`,
+best as the host value :class:`warpnerf.freq_mask.LevelWeights` (the trainer's form: no device
+read per launch); floats, an (L,) tensor or ``None`` (all ones) also work.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ class HashGridEncoder(nn.Module):
     def grid_parameters(self):
         return [self.table]
 
-    def forward(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
         return hashgrid_encode(x.contiguous(), self.table, self.spec, level_weights)
 
     def extra_repr(self) -> str:
@@ -64,7 +66,7 @@ class CPGridEncoder(nn.Module):
     def grid_parameters(self):
         return [self.lines]
 
-    def forward(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
         return cpgrid_encode(x.contiguous(), self.lines, self.spec, level_weights)
 
     def extra_repr(self) -> str:

@@ -58,12 +58,12 @@ class GridField(nn.Module):
     def to_unit(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.aabb_min) / self.aabb_size
 
-    def geometry(self, x: torch.Tensor, level_weights: torch.Tensor | None = None):
+    def geometry(self, x: torch.Tensor, level_weights=None):
         """(N, 3) world points -> density (N,) per unit length, geometry features (N, geo_features)."""
         h = self.density_net(self.encoder(self.to_unit(x), level_weights))
         return trunc_exp(h[:, 0]), h[:, 1:]
 
-    def density(self, x: torch.Tensor, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+    def density(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
         """(N, 3) world points -> (N,) density, per unit length."""
         return self.geometry(x, level_weights)[0]
 
@@ -71,7 +71,7 @@ class GridField(nn.Module):
         """Geometry features (N, geo_features) and unit view directions (N, 3) -> rgb (N, 3) in [0, 1]."""
         return torch.sigmoid(self.color_net(torch.cat([geo, self.dir_encoder(dirs)], dim=-1)))
 
-    def forward(self, x: torch.Tensor, dirs: torch.Tensor, level_weights: torch.Tensor | None = None):
+    def forward(self, x: torch.Tensor, dirs: torch.Tensor, level_weights=None):
         """(N, 3) points and (N, 3) unit directions -> sigma (N,), rgb (N, 3) in [0, 1]."""
         sigma, geo = self.geometry(x, level_weights)
         return sigma, self.color(geo, dirs)

@@ -18,6 +18,7 @@ is 0 is skipped entirely (no table reads, no gradient).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -58,8 +59,57 @@ def g2fr_weights(step: int, total_steps: int, n_levels: int, beta: float, mode: 
     return torch.tensor([g2fr_level_weight(i + 1, tau, mode) for i in range(n_levels)], dtype=torch.float32)
 
 
+@dataclass(frozen=True)
+class LevelWeights:
+    """The G²fR weights w_m of L grid levels as host floats, in [0, 1].
+
+    What the trainer hands the encoders: an immutable host value, so the grid launchers decide
+    which levels to launch without reading a device tensor (no CUDA sync per launch). ``to()``
+    returns the value itself (it lives on no device), so code written for the tensor form works.
+
+    Example:
+        >>> w = LevelWeights((1.0, 0.5, 0.0))
+        >>> w.active, len(w), w.as_tensor().tolist()
+        ((0, 1), 3, [1.0, 0.5, 0.0])
+    """
+
+    values: tuple[float, ...]
+
+    def __post_init__(self):
+        vals = tuple(float(v) for v in self.values)
+        if not all(0.0 <= v <= 1.0 for v in vals):  # also rejects NaN
+            raise ValueError(f"level weights must lie in [0, 1], got {vals}")
+        object.__setattr__(self, "values", vals)
+
+    @classmethod
+    def ones(cls, n_levels: int) -> "LevelWeights":
+        return cls((1.0,) * n_levels)
+
+    @property
+    def active(self) -> tuple[int, ...]:
+        """0-based ids of the levels with w_m > 0 (the only ones a kernel reads)."""
+        return tuple(m for m, w in enumerate(self.values) if w > 0.0)
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def __iter__(self):
+        return iter(self.values)
+
+    def __getitem__(self, m):
+        return self.values[m]
+
+    def to(self, *args, **kwargs) -> "LevelWeights":
+        return self
+
+    def as_tensor(self, device=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(L,) tensor of the weights (a host-to-device copy when ``device`` is a GPU)."""
+        return torch.tensor(self.values, dtype=dtype, device=device)
+
+
 class G2fRSchedule:
-    """Callable schedule: ``schedule(step) -> (n_levels,) weights``; all ones when disabled."""
+    """Callable schedule: ``schedule(step) -> (n_levels,) weights``; all ones when disabled.
+    :meth:`level_weights` gives the same weights as a host :class:`LevelWeights`."""
 
     def __init__(self, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine", enabled: bool = True):
         # validate once, up front, so a bad config fails before training starts
@@ -68,9 +118,14 @@ class G2fRSchedule:
         self.n_levels, self.total_steps, self.beta, self.mode, self.enabled = n_levels, total_steps, beta, mode, enabled
 
     def __call__(self, step: int) -> torch.Tensor:
+        return self.level_weights(step).as_tensor()
+
+    def level_weights(self, step: int) -> LevelWeights:
+        """The weights of ``step`` as a host value (what the trainer passes to the field)."""
         if not self.enabled:
-            return torch.ones(self.n_levels, dtype=torch.float32)
-        return g2fr_weights(step, self.total_steps, self.n_levels, self.beta, self.mode)
+            return LevelWeights.ones(self.n_levels)
+        tau = g2fr_tau(step, self.total_steps, self.n_levels, self.beta)
+        return LevelWeights(tuple(g2fr_level_weight(i + 1, tau, self.mode) for i in range(self.n_levels)))
 
     def active_levels(self, step: int) -> int:
-        return int((self(step) > 0).sum())
+        return len(self.level_weights(step).active)

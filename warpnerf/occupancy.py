@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from .device import init_warp
-from .ops.launch import aabb_floats, as_warp
+from .ops.launch import aabb_floats, as_warp, launch
 
 __all__ = ["OccupancyGrid"]
 
@@ -107,18 +107,18 @@ class OccupancyGrid:
         jitter = self._random(torch.rand, (cells.shape[0], 3), generator)
         points = torch.empty(cells.shape[0], 3, dtype=torch.float32, device=self.device)
         cell_size = wp.vec3(*[(h - l) / res for l, h in zip(lo, hi)])
-        self._launch(occupancy_sample_points, cells.shape[0],
-                     [as_warp(cells), as_warp(jitter, wp.vec3), wp.vec3(*lo), cell_size, res, as_warp(points, wp.vec3)])
+        launch(occupancy_sample_points, cells.shape[0],
+               [as_warp(cells), as_warp(jitter, wp.vec3), wp.vec3(*lo), cell_size, res, as_warp(points, wp.vec3)], self.device)
         sigmas = self._evaluate(density_fn, points)
 
         fresh = torch.full((self.num_cells,), -1.0, dtype=torch.float32, device=self.device)
         grid_scale = wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)])
         # one launch, never split across CPU threads: several samples may max into one cell
-        self._launch(occupancy_scatter_max, cells.shape[0],
-                     [as_warp(points, wp.vec3), as_warp(sigmas), wp.vec3(*lo), grid_scale, res, as_warp(fresh)])
-        self._launch(occupancy_ema, self.num_cells, [as_warp(fresh), self.decay, as_warp(self.density)])
+        launch(occupancy_scatter_max, cells.shape[0],
+               [as_warp(points, wp.vec3), as_warp(sigmas), wp.vec3(*lo), grid_scale, res, as_warp(fresh)], self.device)
+        launch(occupancy_ema, self.num_cells, [as_warp(fresh), self.decay, as_warp(self.density)], self.device)
         threshold = min(self.threshold, float(self.density.mean()))
-        self._launch(occupancy_bitfield, self.num_cells, [as_warp(self.density), threshold, as_warp(self.bitfield)])
+        launch(occupancy_bitfield, self.num_cells, [as_warp(self.density), threshold, as_warp(self.bitfield)], self.device)
 
     def occupied_fraction(self) -> float:
         """Fraction of cells currently marked occupied, in [0, 1]."""
@@ -154,11 +154,3 @@ class OccupancyGrid:
         if bool(torch.isnan(sigmas).any()):
             raise ValueError("OccupancyGrid: density_fn returned NaN")
         return sigmas
-
-    def _launch(self, kernel, dim: int, inputs: list) -> None:
-        wp = init_warp()
-        if self.device.type == "cuda":
-            wp.launch(kernel, dim=dim, inputs=inputs, device=wp.device_from_torch(self.device),
-                      stream=wp.stream_from_torch(self.device))
-        else:
-            wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")

@@ -77,8 +77,10 @@ class Trainer:
 
     # --- training ---------------------------------------------------------------------------
 
-    def level_weights(self, step: int) -> torch.Tensor:
-        return self.schedule(step).to(self.device)
+    def level_weights(self, step: int):
+        """G²fR weights of ``step`` as a host :class:`~warpnerf.freq_mask.LevelWeights`: the grid
+        launchers read it without touching the device (no CUDA sync per launch)."""
+        return self.schedule.level_weights(step)
 
     def sample_pixels(self, n: int):
         """Random (view, pixel) batch: view ids (n,), pixel centres u, v (n,), colors (n, 3)."""

@@ -161,6 +161,7 @@ class MeshRenderer:
         are split over the worker threads (each launch runs on one thread).
         """
         from warpnerf.device import num_threads, run_chunks, split_range
+        from warpnerf.ops.launch import launch
 
         wp = self._wp
         c2w = np.asarray(c2w, np.float32).reshape(-1, 3, 4)
@@ -173,10 +174,11 @@ class MeshRenderer:
             def run():
                 out_rgba = wp.empty((hi - lo, height, width), dtype=wp.vec4, device=self.device)
                 out_depth = wp.empty((hi - lo, height, width), dtype=wp.float32, device=self.device)
-                wp.launch(
+                # Warp-made arrays: the shared launcher runs it on Warp's stream for this device
+                launch(
                     self._kernel,
-                    dim=(hi - lo, height, width),
-                    inputs=[
+                    (hi - lo, height, width),
+                    [
                         self._mesh.id,
                         *self._tables,
                         wp.array(np.ascontiguousarray(c2w[lo:hi, :, :3]), dtype=wp.mat33, device=self.device),
@@ -191,8 +193,8 @@ class MeshRenderer:
                         AMBIENT,
                         int(self.shadows),
                     ],
+                    self.device,
                     outputs=[out_rgba, out_depth],
-                    device=self.device,
                 )
                 rgba[lo:hi] = out_rgba.numpy().reshape(hi - lo, height, width, 4)
                 depth[lo:hi] = out_depth.numpy()

@@ -25,15 +25,14 @@ from dataclasses import dataclass
 
 import torch
 
-from ..device import init_warp, num_threads, run_chunks, split_range
-from .launch import CachedLauncher, GridEncodeFunction, check_grid_inputs, check_level_weights
+from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, level_weight_values
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
-# backward level chunks: fixed (not the thread count) so the dx summation order never changes
-_BWD_LEVEL_CHUNKS = 2
-# Warp compiles one vector type of length R per rank; beyond this, registers and compile time explode
-_MAX_RANK = 256
+# Warp generates one kernel pair (and one vector type of length R) per (rank, dtype). A fixed set
+# of ranks keeps the kernels finite, so tests/test_cuda_compile.py can compile every one of them
+# for the GPU; beyond 64, registers and compile time explode.
+SUPPORTED_RANKS = (1, 2, 4, 8, 16, 32, 64)
 
 
 @dataclass(frozen=True)
@@ -70,8 +69,8 @@ class CPGridSpec:
                 raise TypeError(f"CPGridSpec: {name} must be an int, got {type(value).__name__}")
         if n_levels < 1:
             raise ValueError(f"CPGridSpec: need n_levels >= 1, got {n_levels}")
-        if not 1 <= rank <= _MAX_RANK:
-            raise ValueError(f"CPGridSpec: rank must be in [1, {_MAX_RANK}], got {rank}")
+        if rank not in SUPPORTED_RANKS:
+            raise ValueError(f"CPGridSpec: rank must be one of {SUPPORTED_RANKS}, got {rank}")
         if not 2 <= base_resolution <= max_resolution:
             raise ValueError(f"CPGridSpec: need 2 <= base_resolution <= max_resolution, got {base_resolution}, {max_resolution}")
         if max_resolution > 2**20:
@@ -132,7 +131,7 @@ def init_cp_lines(
 
 
 def cpgrid_encode(
-    x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights: torch.Tensor | None = None
+    x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights=None
 ) -> torch.Tensor:
     """Encode points with a multi-resolution CP grid.
 
@@ -142,8 +141,9 @@ def cpgrid_encode(
         lines: (spec.n_rows, 3, R) line values of all levels, same dtype and device as ``x``.
             Differentiable.
         spec: the grid geometry (:class:`CPGridSpec`).
-        level_weights: (L,) G²fR weights w_l in [0, 1]; ``None`` means all ones. Not differentiable.
-            Levels with w_l = 0 are skipped (output 0, no gradient).
+        level_weights: L G²fR weights w_l in [0, 1] (host :class:`~warpnerf.freq_mask.LevelWeights`,
+            floats, an (L,) tensor, or ``None`` for all ones; see :func:`hashgrid_encode`).
+            Not differentiable. Levels with w_l = 0 are skipped (output 0, no gradient).
 
     Returns:
         (N, L*R) features; columns [l*R, (l+1)*R) belong to level l and are scaled by w_l.
@@ -153,112 +153,33 @@ def cpgrid_encode(
         >>> cpgrid_encode(torch.rand(5, 3), init_cp_lines(spec), spec).shape
         torch.Size([5, 16])
     """
-    weights = _check_inputs(x, lines, spec, level_weights)
-    return GridEncodeFunction.apply(x, lines, weights, _Launcher.get(spec, x.device, x.dtype))
+    values = _check_inputs(x, lines, spec, level_weights)
+    return GridEncodeFunction.apply(x, lines, values, _Launcher.get(spec, x.device, x.dtype))
 
 
-def _check_inputs(x, lines, spec, level_weights) -> torch.Tensor:
+def _check_inputs(x, lines, spec, level_weights) -> tuple[float, ...]:
     check_grid_inputs("cpgrid_encode", x, lines, "lines", spec, CPGridSpec, lambda s: (3, s.lines_shape))
-    return check_level_weights("cpgrid_encode", level_weights, spec.n_levels, x)
+    return level_weight_values("cpgrid_encode", level_weights, spec.n_levels)
 
 
-class _Launcher(CachedLauncher):
-    """Per (spec, device, dtype) Warp state: kernels and the small per-level metadata arrays."""
+def kernel_variant_specs():
+    """One small spec per kernel variant the op can generate (every rank it accepts), for
+    :func:`warpnerf.ops.registry.kernel_modules`; the dtype is the other variant axis."""
+    for rank in SUPPORTED_RANKS:
+        yield f"R={rank}", CPGridSpec.create(1, rank, 2, 2)
 
-    def __init__(self, spec: CPGridSpec, device: torch.device, dtype: torch.dtype):
-        wp = init_warp()
+
+class _Launcher(GridLauncher):
+    """The CP grid's kernels and per-level metadata; launches are :class:`GridLauncher`'s."""
+
+    op = "cpgrid_encode"
+
+    @staticmethod
+    def make_kernels(spec: CPGridSpec, wp_dtype):
         from ..kernels.cpgrid import make_cpgrid_kernels
 
-        self.wp = wp
-        self.spec = spec
-        self.on_cpu = device.type == "cpu"
-        self.torch_device = device
-        self.wp_dtype = wp.float64 if dtype == torch.float64 else wp.float32
-        self.fwd, self.bwd, self.vec = make_cpgrid_kernels(spec.rank, self.wp_dtype)
-        self.device = "cpu" if self.on_cpu else f"cuda:{device.index or 0}"
-        as_i32 = lambda v: wp.array(list(v), dtype=wp.int32, device=self.device)  # noqa: E731
-        self.resolutions = as_i32(spec.resolutions)
-        self.offsets = as_i32(spec.offsets[:-1])
-        self._levels: dict = {}
-        # compile/load now: two threads hitting a cold module at once would both compile it
-        for kernel in (self.fwd, self.bwd):
-            wp.load_module(kernel.module, device=self.device)
-        self._sync()
+        return make_cpgrid_kernels(spec.rank, wp_dtype)
 
-    def _sync(self) -> None:
-        # metadata uploads go through Warp's stream, launches through torch's: finish the uploads first
-        if not self.on_cpu:
-            self.wp.synchronize_device(self.device)
-
-    def levels(self, ids: tuple[int, ...]):
-        if ids not in self._levels:
-            self._levels[ids] = self.wp.array(list(ids), dtype=self.wp.int32, device=self.device)
-            self._sync()
-        return self._levels[ids]
-
-    def _launch(self, kernel, dim, inputs) -> None:
-        if self.on_cpu:
-            self.wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")
-        else:  # order the launch with torch's work on the same stream
-            self.wp.launch(kernel, dim=dim, inputs=inputs, stream=self.wp.stream_from_torch(self.torch_device))
-
-    def _view(self, t: torch.Tensor, dtype):
-        return self.wp.from_torch(t, dtype=dtype, requires_grad=False)
-
-    def forward(self, x: torch.Tensor, lines: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        spec = self.spec
-        n = x.shape[0]
-        out = torch.zeros(n, spec.n_levels, spec.rank, dtype=x.dtype, device=x.device)
-        active = tuple(m for m, w in enumerate(weights.tolist()) if w > 0)
-        if n == 0 or not active:
-            return out.view(n, spec.out_dim)
-        head = [
-            self._view(x, self.wp_dtype),
-            self._view(lines, self.vec),
-            self.levels(active),
-            self.resolutions,
-            self.offsets,
-            self._view(weights, self.wp_dtype),
-        ]
-        out_wp = self._view(out, self.vec)
-        # a gather: every output written once, so splitting by points is thread-count independent
-        chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
-
-        def launch(lo: int, hi: int):
-            self._launch(self.fwd, (len(active), hi - lo), [*head, lo, out_wp])
-
-        run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in chunks])
-        return out.view(n, spec.out_dim)
-
-    def backward(self, x, lines, weights, grad_out, want_x: bool, want_lines: bool):
-        spec = self.spec
-        n = x.shape[0]
-        active = [m for m, w in enumerate(weights.tolist()) if w > 0]
-        grad_lines = torch.zeros_like(lines) if want_lines else None
-        n_chunks = _BWD_LEVEL_CHUNKS if self.on_cpu else 1
-        # levels own disjoint row ranges of ``lines``: chunks of levels never scatter into the same rows
-        groups = [tuple(active[k::n_chunks]) for k in range(n_chunks)]
-        groups = [g for g in groups if g]
-        grad_x_parts = torch.zeros(max(len(groups), 1), n, 3, dtype=x.dtype, device=x.device) if want_x else None
-        if n == 0 or not groups:
-            return (grad_x_parts.sum(0) if want_x else None), grad_lines
-        go = grad_out.contiguous().view(n, spec.n_levels, spec.rank)
-        common = [self._view(x, self.wp_dtype), self._view(lines, self.vec), self._view(go, self.vec)]
-        meta = [self.resolutions, self.offsets, self._view(weights, self.wp_dtype), int(want_lines), int(want_x)]
-        # kernels need valid arrays even for outputs they skip
-        gl = self._view(grad_lines if want_lines else lines.new_zeros(1, 3, spec.rank), self.vec)
-        gx_parts = grad_x_parts if want_x else x.new_zeros(len(groups), 1, 3)
-
-        level_arrays = [self.levels(g) for g in groups]  # built here, not inside the worker threads
-
-        def launch(k: int):
-            self._launch(self.bwd, (len(groups[k]), n),
-                         [*common, level_arrays[k], *meta, gl, self._view(gx_parts[k], self.wp_dtype)])
-
-        run_chunks([lambda k=k: launch(k) for k in range(len(groups))])
-        grad_x = None
-        if want_x:
-            grad_x = grad_x_parts[0]
-            for k in range(1, len(groups)):
-                grad_x = grad_x + grad_x_parts[k]
-        return grad_x, grad_lines
+    @staticmethod
+    def metadata(spec: CPGridSpec):
+        return [spec.resolutions, spec.offsets[:-1]], []

@@ -17,6 +17,12 @@ from dataclasses import dataclass
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 
+# Input dimensions and feature counts the op supports. Warp generates one kernel pair per
+# (D, F, dtype); keeping F to Instant-NGP's set (tiny-cuda-nn allows the same) makes the set of
+# kernels finite, so tests/test_cuda_compile.py can compile every one of them for the GPU.
+SUPPORTED_DIMS = (1, 2, 3)
+SUPPORTED_FEATURES = (1, 2, 4, 8)
+
 
 @dataclass(frozen=True)
 class HashGridSpec:
@@ -40,10 +46,12 @@ class HashGridSpec:
         max_resolution: int = 2048,
     ) -> "HashGridSpec":
         """Levels grow geometrically from ``base_resolution`` to ``max_resolution`` points per axis."""
-        if dim not in (1, 2, 3):
+        if dim not in SUPPORTED_DIMS:
             raise ValueError(f"hash grid input dimension must be 1, 2 or 3, got {dim}")
-        if n_levels < 1 or n_features < 1:
-            raise ValueError(f"need n_levels >= 1 and n_features >= 1, got {n_levels}, {n_features}")
+        if n_levels < 1:
+            raise ValueError(f"need n_levels >= 1, got {n_levels}")
+        if n_features not in SUPPORTED_FEATURES:
+            raise ValueError(f"hash grid features per level must be one of {SUPPORTED_FEATURES}, got {n_features}")
         if not 2 <= base_resolution <= max_resolution:
             raise ValueError(f"need 2 <= base_resolution <= max_resolution, got {base_resolution}, {max_resolution}")
         if not 4 <= log2_table_size <= 30:

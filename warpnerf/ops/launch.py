@@ -1,18 +1,51 @@
-"""Launch helpers shared by the per-ray ops (march, composite) and the occupancy grid.
+"""The one launcher of every Warp op: grid encodings, marching, compositing, occupancy, ray tracing.
 
-Torch tensors become zero-copy Warp views that never touch autograd, and per-ray kernels are
-cut into fixed CPU chunks (see :mod:`warpnerf.device`) so results never depend on the thread count.
+* :func:`launch` is the only place that calls ``wp.launch``. On CUDA it picks the stream: torch's
+  current stream when the inputs are torch tensors (so a launch is ordered with the torch work
+  that produced its inputs and consumes its outputs, with no device-wide sync), Warp's stream
+  when the inputs are Warp arrays Warp itself uploaded (the mesh renderer).
+* :func:`launch_over_rays` cuts per-ray kernels into fixed CPU chunks on the thread pool.
+* :class:`GridLauncher` owns everything the level-major grid encodings (hash grid, CP lines)
+  share: forward/backward launches, level groups, the CPU thread split, the per-chunk ``grad_x``
+  sums, and the per-level metadata, uploaded once. An encoding supplies only its kernels and
+  metadata (see :class:`GridLauncher`).
+
+Thread split and determinism (docs/design.md): chunking never depends on the thread count, so
+results are bit-identical whether the chunks run on one thread or several.
 """
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 
-from ..device import init_warp, run_chunks, split_range
+from ..device import init_warp, num_threads, run_chunks, split_range
 
 # fixed number of CPU ray chunks: rays differ a lot in cost (box misses, empty space), and
 # four chunks balance two threads better than two; the launch overhead (~15 us each) is negligible
 _CPU_RAY_CHUNKS = 4
+# grid backward: fixed number of CPU level groups (not the thread count), so the grad_x summation
+# order never changes; each group scatters into disjoint rows of the parameter gradient
+_BWD_LEVEL_CHUNKS = 2
+
+
+def launch(kernel, dim, inputs: list, device, outputs: list | None = None) -> None:
+    """Launch ``kernel`` over ``dim`` on ``device``, on the stream that owns the inputs.
+
+    ``device`` is a ``torch.device`` when the arrays are views of torch tensors: on CUDA the launch
+    goes on torch's *current* stream. A Warp device string (``"cpu"``, ``"cuda:0"``) means the
+    arrays were made by Warp: the launch goes on Warp's current stream for that device.
+    """
+    wp = init_warp()
+    outputs = outputs or []
+    if isinstance(device, torch.device):
+        if device.type == "cuda":
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, stream=wp.stream_from_torch(device))
+        else:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device="cpu")
+    else:
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=str(device))
 
 
 def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) -> None:
@@ -22,16 +55,11 @@ def launch_over_rays(kernel, num_rays: int, inputs: list, device: torch.device) 
     into ``_CPU_RAY_CHUNKS`` fixed chunks run on the thread pool; on CUDA it is one launch on
     torch's current stream.
     """
-    wp = init_warp()
     if device.type == "cuda":
-        wp_device = wp.device_from_torch(device)
-        wp.launch(kernel, dim=num_rays, inputs=[0, *inputs], device=wp_device, stream=wp.stream_from_torch(device))
+        launch(kernel, num_rays, [0, *inputs], device)
         return
-
-    def launch(lo: int, hi: int):
-        wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], device="cpu")
-
-    run_chunks([lambda lo=lo, hi=hi: launch(lo, hi) for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
+    run_chunks([lambda lo=lo, hi=hi: launch(kernel, hi - lo, [lo, *inputs], device)
+                for lo, hi in split_range(num_rays, _CPU_RAY_CHUNKS) if hi > lo])
 
 
 def check_grid_inputs(op: str, x, params, params_name: str, spec, spec_type: type, shapes) -> None:
@@ -61,54 +89,183 @@ def check_grid_inputs(op: str, x, params, params_name: str, spec, spec_type: typ
         raise ValueError(f"{op}: x contains NaN or inf")
 
 
-def check_level_weights(op: str, level_weights, n_levels: int, x: torch.Tensor) -> torch.Tensor:
-    """G²fR level weights for a grid op: all ones when None, else an (L,) tensor in [0, 1]
-    (NaN rejected), returned detached, contiguous, on x's device and dtype."""
+def level_weight_values(op: str, level_weights, n_levels: int) -> tuple[float, ...]:
+    """G²fR level weights for a grid op as host floats: all ones for None; a
+    :class:`~warpnerf.freq_mask.LevelWeights` or a sequence of floats is read as is (no device
+    access); an (L,) tensor is read once (a device sync on CUDA: pass host weights in hot loops).
+    ValueError unless there are L values in [0, 1] (NaN rejected)."""
     if level_weights is None:
-        return torch.ones(n_levels, dtype=x.dtype, device=x.device)
-    if not isinstance(level_weights, torch.Tensor) or tuple(level_weights.shape) != (n_levels,):
-        raise ValueError(f"{op}: level_weights must be a tensor of shape ({n_levels},)")
-    w = level_weights.detach().to(device=x.device, dtype=x.dtype).contiguous()
-    if not bool(((w >= 0) & (w <= 1)).all()):  # also rejects NaN
+        return (1.0,) * n_levels
+    if isinstance(level_weights, torch.Tensor):
+        if tuple(level_weights.shape) != (n_levels,):
+            raise ValueError(f"{op}: level_weights must be a tensor of shape ({n_levels},)")
+        values = tuple(level_weights.detach().cpu().tolist())
+    else:
+        try:
+            values = tuple(float(w) for w in level_weights)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{op}: level_weights must be {n_levels} floats, LevelWeights or a tensor") from e
+        if len(values) != n_levels:
+            raise ValueError(f"{op}: level_weights must have shape ({n_levels},), got {len(values)} values")
+    if not all(0.0 <= w <= 1.0 for w in values):  # also rejects NaN
         raise ValueError(f"{op}: level weights must lie in [0, 1]")
-    return w
+    return values
 
 
-class CachedLauncher:
-    """Base of the grid ops' launchers: one instance (kernels, metadata arrays) per
-    (launcher class, spec, device, dtype), built on first use."""
+class GridLauncher:
+    """Warp work of a level-major grid encoding; one instance per (class, spec, device, dtype).
+
+    An encoding subclasses it and supplies only :meth:`make_kernels` and :meth:`metadata`; the
+    kernels follow one argument layout::
+
+        fwd(x, params, levels, *meta, weights, start, out)            dim = (len(levels), n)
+        bwd(x, params, grad_out, levels, *meta, weights, want_params, want_x, grad_params, grad_x)
+
+    ``levels`` are the level ids of the launch, ``meta`` the encoding's per-level int32 arrays
+    followed by its scalars, ``weights`` the (L,) level weights, ``out`` (N, L) vectors of F,
+    ``grad_x`` one (N, D) buffer per backward level group.
+
+    CPU split: the forward (a gather) by points over the threads; the backward (a scatter) by
+    levels into ``_BWD_LEVEL_CHUNKS`` fixed groups, active levels dealt alternately (coarse,
+    cache-friendly levels and fine ones balance out), each group with its own ``grad_x`` buffer,
+    summed in group order. Levels own disjoint parameter rows, so the groups never write the same
+    memory. On CUDA each pass is one launch on torch's current stream.
+    """
 
     _cache: dict = {}
+    op = "grid_encode"
 
     @classmethod
-    def get(cls, spec, device: torch.device, dtype: torch.dtype):
+    def get(cls, spec, device: torch.device, dtype: torch.dtype) -> "GridLauncher":
         key = (cls, spec, str(device), dtype)
-        if key not in CachedLauncher._cache:
-            CachedLauncher._cache[key] = cls(spec, device, dtype)
-        return CachedLauncher._cache[key]
+        if key not in GridLauncher._cache:
+            GridLauncher._cache[key] = cls(spec, device, dtype)
+        return GridLauncher._cache[key]
+
+    # --- what an encoding supplies ------------------------------------------------------------
+
+    @staticmethod
+    def make_kernels(spec, wp_dtype):
+        """``(fwd, bwd, vec)``: the kernels for this spec and dtype, and the feature vector type."""
+        raise NotImplementedError
+
+    @staticmethod
+    def metadata(spec) -> tuple[list[Sequence[int]], list]:
+        """``(per-level int arrays, scalars)`` passed after ``levels``, e.g. resolutions and offsets."""
+        raise NotImplementedError
+
+    # --- shared machinery ---------------------------------------------------------------------
+
+    def __init__(self, spec, device: torch.device, dtype: torch.dtype):
+        wp = init_warp()
+        self.wp, self.spec, self.torch_device, self.dtype = wp, spec, torch.device(device), dtype
+        self.on_cpu = self.torch_device.type == "cpu"
+        self.wp_device = "cpu" if self.on_cpu else f"cuda:{self.torch_device.index or 0}"
+        self.wp_dtype = wp.float64 if dtype == torch.float64 else wp.float32
+        self.fwd, self.bwd, self.vec = self.make_kernels(spec, self.wp_dtype)
+        arrays, scalars = self.metadata(spec)
+        # uploaded once, through Warp's stream: _uploaded() waits for them before any launch
+        self.meta = [wp.array(list(a), dtype=wp.int32, device=self.wp_device) for a in arrays] + list(scalars)
+        self._levels: dict = {}
+        self._weights: dict = {}
+        # compile/load now, on this thread: two threads hitting a cold module at once would both compile it
+        for kernel in (self.fwd, self.bwd):
+            wp.load_module(kernel.module, device=self.wp_device)
+        self._uploaded()
+
+    def _uploaded(self) -> None:
+        # Warp uploads on its own stream, launches run on torch's: finish the (one-time) uploads first
+        if not self.on_cpu:
+            self.wp.synchronize_device(self.wp_device)
+
+    def levels(self, ids: tuple[int, ...]):
+        """int32 array of level ids, built once per distinct tuple (on the calling thread)."""
+        if ids not in self._levels:
+            self._levels[ids] = self.wp.array(list(ids), dtype=self.wp.int32, device=self.wp_device)
+            self._uploaded()
+        return self._levels[ids]
+
+    def weights(self, values: tuple[float, ...]) -> torch.Tensor:
+        """(L,) weights on the device. On CUDA: copied from pinned memory on torch's current stream
+        (ordered with the launch, no host sync) and kept for reuse (backward, repeated steps)."""
+        if self.on_cpu:
+            return torch.tensor(values, dtype=self.dtype)
+        if values not in self._weights:
+            if len(self._weights) >= 8:  # G²fR ramps change weights every step: keep only recent ones
+                self._weights.pop(next(iter(self._weights)))
+            host = torch.tensor(values, dtype=self.dtype).pin_memory()
+            self._weights[values] = host.to(self.torch_device, non_blocking=True)
+        return self._weights[values]
+
+    def _view(self, t: torch.Tensor, dtype):
+        return self.wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+    def forward(self, x: torch.Tensor, params: torch.Tensor, values: tuple[float, ...]) -> torch.Tensor:
+        """(N, D) points, detached parameters, host weights -> (N, L * F) features."""
+        spec, n = self.spec, x.shape[0]
+        n_levels, n_features = len(values), self.vec._length_
+        out = torch.zeros(n, n_levels, n_features, dtype=x.dtype, device=x.device)
+        active = tuple(m for m, w in enumerate(values) if w > 0.0)
+        if n == 0 or not active:
+            return out.view(n, n_levels * n_features)
+        head = [self._view(x, self.wp_dtype), self._view(params, self.vec), self.levels(active), *self.meta,
+                self._view(self.weights(values), self.wp_dtype)]
+        out_wp = self._view(out, self.vec)
+        # a gather: every output written once, so splitting by points is thread-count independent
+        chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
+        run_chunks([lambda lo=lo, hi=hi: launch(self.fwd, (len(active), hi - lo), [*head, lo, out_wp], x.device)
+                    for lo, hi in chunks])
+        return out.view(n, n_levels * n_features)
+
+    def backward(self, x, params, values, grad_out, want_x: bool, want_params: bool):
+        """-> (grad_x (N, D) or None, grad_params like ``params`` or None)."""
+        n, dim = x.shape
+        active = [m for m, w in enumerate(values) if w > 0.0]
+        grad_params = torch.zeros_like(params) if want_params else None
+        n_groups = _BWD_LEVEL_CHUNKS if self.on_cpu else 1
+        groups = [g for g in (tuple(active[k::n_groups]) for k in range(n_groups)) if g]
+        grad_x_parts = torch.zeros(max(len(groups), 1), n, dim, dtype=x.dtype, device=x.device) if want_x else None
+        if n == 0 or not groups:
+            return (grad_x_parts.sum(0) if want_x else None), grad_params
+        go = grad_out.contiguous().view(n, len(values), self.vec._length_)
+        head = [self._view(x, self.wp_dtype), self._view(params, self.vec), self._view(go, self.vec)]
+        tail = [self._view(self.weights(values), self.wp_dtype), int(want_params), int(want_x)]
+        # kernels need valid arrays even for outputs they skip
+        gp = self._view(grad_params if want_params else params.new_zeros(1, *params.shape[1:]), self.vec)
+        gx_parts = grad_x_parts if want_x else x.new_zeros(len(groups), 1, dim)
+        level_arrays = [self.levels(g) for g in groups]  # built here, not inside the worker threads
+
+        def run(k: int):
+            launch(self.bwd, (len(groups[k]), n),
+                   [*head, level_arrays[k], *self.meta, *tail, gp, self._view(gx_parts[k], self.wp_dtype)], x.device)
+
+        run_chunks([lambda k=k: run(k) for k in range(len(groups))])
+        grad_x = None
+        if want_x:  # fixed summation order: group 0, then 1, ...
+            grad_x = grad_x_parts[0]
+            for k in range(1, len(groups)):
+                grad_x = grad_x + grad_x_parts[k]
+        return grad_x, grad_params
 
 
 class GridEncodeFunction(torch.autograd.Function):
-    """Autograd glue shared by the level-major grid encodings (hash grid, CP lines).
-
-    ``launcher`` owns the Warp work: ``forward(x, params, weights)`` and
-    ``backward(x, params, weights, grad_out, want_x, want_params) -> (grad_x, grad_params)``.
-    """
+    """Autograd glue of the grid encodings: ``apply(x, params, values, launcher)`` with host
+    level weights ``values`` (a tuple of floats, not differentiated)."""
 
     @staticmethod
-    def forward(ctx, x, params, weights, launcher):
-        out = launcher.forward(x, params.detach(), weights)
-        ctx.launcher = launcher
-        ctx.save_for_backward(x, params, weights)
+    def forward(ctx, x, params, values, launcher):
+        out = launcher.forward(x, params.detach(), values)
+        ctx.launcher, ctx.values = launcher, values
+        ctx.save_for_backward(x, params)
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        x, params, weights = ctx.saved_tensors
+        x, params = ctx.saved_tensors
         want_x, want_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (want_x or want_params):
             return None, None, None, None
-        grad_x, grad_params = ctx.launcher.backward(x.detach(), params.detach(), weights, grad_out, want_x,
+        grad_x, grad_params = ctx.launcher.backward(x.detach(), params.detach(), ctx.values, grad_out, want_x,
                                                     want_params)
         return grad_x, grad_params, None, None
 

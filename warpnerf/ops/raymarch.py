@@ -18,6 +18,11 @@ from .launch import aabb_floats, as_warp, launch_over_rays
 __all__ = ["march_rays", "march_rays_within_budget", "PackedSamples", "rays_within_budget"]
 
 
+# candidate steps one ray may take at most (= kernels/raymarch.py MAX_STEPS_PER_RAY, kept here so the
+# torch twin does not import Warp; a test checks they agree)
+MAX_STEPS_PER_RAY = 65536
+
+
 class PackedSamples(NamedTuple):
     """Samples of all rays in one flat array, grouped by ray in ray order.
 
@@ -52,6 +57,8 @@ def march_rays(
     jitter), and is kept when its midpoint lies in an occupied cell of the grid. Only the last
     sample of a ray can be shorter than ``step_size``; with jitter, [t0, t0 + u step) is left
     out, which fresh offsets every iteration average away. Non-contiguous inputs are copied.
+    Rays with a NaN/inf origin or direction get no samples, and no ray takes more than
+    ``MAX_STEPS_PER_RAY`` candidate steps, so bad input can never hang the march.
 
     Args:
         rays_o: (R, 3) float32 ray origins.
@@ -108,6 +115,10 @@ def march_rays_within_budget(
         raise ValueError(
             f"march_rays: need step_size > 0 and near <= far, got step_size={step_size}, near={near}, far={far}"
         )
+    diagonal = sum((h - l) ** 2 for l, h in zip(lo, hi)) ** 0.5
+    if diagonal / step_size > MAX_STEPS_PER_RAY:
+        raise ValueError(f"march_rays: step_size {step_size} needs more than {MAX_STEPS_PER_RAY} steps along the box "
+                         f"diagonal {diagonal:.4g}; use a step of at least {diagonal / MAX_STEPS_PER_RAY:.3g}")
     if int(max_samples_per_ray) < 1:
         raise ValueError(f"march_rays: max_samples_per_ray must be >= 1, got {max_samples_per_ray}")
 

@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..launch import aabb_floats
-from ..raymarch import PackedSamples
+from ..raymarch import MAX_STEPS_PER_RAY, PackedSamples
 
 __all__ = ["march_rays"]
 
@@ -55,10 +55,12 @@ def march_rays(
         t1 = torch.where(flat, t1, torch.minimum(t1, torch.maximum(ta, tb)))
         t1 = torch.where(flat & ((o < box_min[a]) | (o > box_max[a])), t0, t1)
     hit = (t1 > t0) & (rays_d != 0.0).any(1)
+    # the kernel's guards: non-finite rays or intervals are misses, at most MAX_STEPS_PER_RAY steps
+    hit &= torch.isfinite(rays_o).all(1) & torch.isfinite(rays_d).all(1) & torch.isfinite(t0) & torch.isfinite(t1)
 
     u = jitter if jitter is not None else torch.zeros(num_rays, **f32)
     span = ((t1 - t0) / step)[hit]
-    n_steps = int(torch.ceil(span.max()).item()) + 1 if span.numel() else 0
+    n_steps = min(int(torch.ceil(span.max()).item()) + 1, MAX_STEPS_PER_RAY) if span.numel() else 0
     k = torch.arange(n_steps, **f32)
     ts = t0[:, None] + (k[None, :] + u[:, None]) * step
     te = torch.minimum(ts + step, t1[:, None])
