@@ -55,6 +55,7 @@ TASKS = ("full", "fewshot", "pose")
 ARMS = {"g2fr": True, "nog2fr": False}
 # keys a spec's [overrides] may not set: they are what the sweep itself varies or places
 _SWEPT = ("scene", "task", "model", "g2fr", "seed", "out", "data_root", "threads")
+MACHINE_FILE = "sweep_machine.txt"  # in the run folder: the machine() line of the worker that ran it
 _SPEC_KEYS = {"out", "scenes", "models", "tasks", "arms", "seeds", "data_root", "config", "retries", "resources",
               "overrides", "device"}
 
@@ -99,7 +100,13 @@ class SweepSpec:
 
 
 def load_spec(path: str) -> SweepSpec:
-    """Read a sweep spec; unknown keys and bad values are one-line ``ConfigError``s."""
+    """Read a sweep spec; unknown keys and bad values are one-line ``ConfigError``s.
+
+    ``path`` may also name a spec shipped in ``configs/sweeps/`` (e.g. ``nerf_synthetic_pose``)."""
+    if not os.path.exists(path):
+        shipped = shipped_spec(path)
+        if shipped:
+            path = shipped
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
@@ -155,6 +162,16 @@ def load_spec(path: str) -> SweepSpec:
         return SweepSpec(**kwargs, overrides=flat, task_overrides=per_task, model_overrides=per_model)
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
+
+
+def shipped_spec(name: str) -> Optional[str]:
+    """Path of ``configs/sweeps/<name>.toml`` shipped with the package, or None."""
+    from importlib import resources
+
+    stem = os.path.basename(name)
+    stem = stem[:-5] if stem.endswith(".toml") else stem
+    path = str(resources.files("warpnerf.configs").joinpath("sweeps", f"{stem}.toml"))
+    return path if os.path.exists(path) else None
 
 
 @dataclass
@@ -247,6 +264,9 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
         with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
             try:
                 result.update(status="done", metrics=run_training(cfg, progress=False))
+                # where it ran, for the table's note when a restarted sweep skips this run
+                with open(os.path.join(cfg.run_dir(), MACHINE_FILE), "w") as fh:
+                    fh.write(result["machine"] + "\n")
             except BaseException as e:  # noqa: BLE001 - any failure of a run is reported, not raised
                 if isinstance(e, KeyboardInterrupt):
                     raise
@@ -480,6 +500,9 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
         done = finished_metrics(res.run.cfg)
         if done is not None:
             res.status, res.metrics = "skipped", done
+            with contextlib.suppress(OSError):
+                with open(os.path.join(res.run.cfg.run_dir(), MACHINE_FILE)) as fh:
+                    res.machine = fh.read().strip()
     pending = [r for r in results if r.status != "skipped"]
     os.makedirs(spec.out, exist_ok=True)
     bar = _Progress(len(results), len(results) - len(pending), progress)
