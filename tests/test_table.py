@@ -73,3 +73,32 @@ def test_builtin_scene_gets_no_paper_numbers():
 def test_missing_values_are_marked():
     row = format_table("fewshot", {"lego": {"w/": {"psnr": 25.0}}}).splitlines()[2]
     assert "n/a" in row
+
+
+def test_lego_mic_tables_for_both_models_and_tasks():
+    """What `warpnerf table --scenes lego,mic --models ngp,mtrf --tasks pose,fewshot` prints, from given metrics."""
+    from warpnerf.sweep import RunResult, SweepSpec, expand
+    from warpnerf.table import tables_markdown
+
+    spec = SweepSpec(scenes=["lego", "mic"], models=["ngp", "mtrf"], tasks=["pose", "fewshot"], out="o")
+    results = []
+    for run in expand(spec):
+        m = arms(model=run.model)["w/" if run.arm == "g2fr" else "w/o"]
+        results.append(RunResult(run, status="done", metrics={**m, "iters": 20, "device": "cpu", "threads": 2},
+                                 machine="box (4 CPU cores)"))
+    text = tables_markdown(results)
+    heads = [line for line in text.splitlines() if line.startswith("### ")]
+    assert heads == ["### Camera-pose optimisation (cf. paper Tab. 1), ngp", "### Camera-pose optimisation (cf. paper Tab. 1), mtrf",
+                     "### Few-shot reconstruction (cf. paper Tab. 3), ngp", "### Few-shot reconstruction (cf. paper Tab. 3), mtrf"]
+    assert "ran on cpu, 2 Warp threads on box (4 CPU cores)" in text and "2-core" not in text
+    assert "BARF's quantity" in text
+    rows = [line for line in text.splitlines() if line.startswith("| mic |")]
+    assert "0.070 (0.042)" in rows[0] and "0.070 (0.043)" in rows[1]  # Tab. 1 mic, NGP then Mtrf
+    assert "30.03 (29.92)" in rows[2] and "(" not in rows[3]  # Tab. 3 is NGP only
+
+
+def test_seeds_are_averaged():
+    from warpnerf.table import _mean_over_seeds
+
+    m = _mean_over_seeds([{"psnr": 20.0, "scene": "a", "g2fr": True}, {"psnr": 22.0, "scene": "a", "g2fr": True}])
+    assert m == {"psnr": 21.0, "scene": "a", "g2fr": True}
