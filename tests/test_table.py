@@ -1,19 +1,64 @@
-"""The reproduction table: layout, paper numbers beside ours, run reuse."""
+"""The reproduction table: the paper's numbers (Tab. 1, Tab. 3), layout, paper numbers beside ours."""
 
+import pytest
+
+from warpnerf.paper import BARF, MIPNERF360, NERF_SYNTHETIC, PAPER, barf_numbers, paper_numbers
 from warpnerf.table import format_table
 
 
 def arms(source="dataset", model="ngp"):
-    w = {"psnr": 30.03, "ssim": 0.946, "rot_err_deg": 0.0697, "trans_err_x100": 0.497, "scene_source": source, "model": model}
-    wo = {"psnr": 25.0, "ssim": 0.9, "rot_err_deg": 1.5, "trans_err_x100": 9.0, "scene_source": source, "model": model}
+    w = {"psnr": 30.03, "ssim": 0.946, "lpips": 0.05, "rot_err_deg": 0.0697, "trans_err_x100": 0.497,
+         "scene_source": source, "model": model}
+    wo = {"psnr": 25.0, "ssim": 0.9, "lpips": 0.1, "rot_err_deg": 1.5, "trans_err_x100": 9.0, "scene_source": source,
+          "model": model}
     return {"w/": w, "w/o": wo}
+
+
+# (scene, task, model, arm, metric, value) as quoted in issue 10 and read off the paper's tables
+SPOT_CHECKS = [
+    ("lego", "pose", "ngp", "w/", (0.049, 0.167, 32.53)), ("lego", "pose", "ngp", "w/o", (1.181, 4.361, 31.33)),
+    ("mic", "pose", "ngp", "w/", (0.042, 0.139, 33.30)), ("mic", "pose", "ngp", "w/o", (0.965, 2.627, 30.02)),
+    ("mic", "pose", "mtrf", "w/", (0.043, 0.164, 33.10)), ("mic", "pose", "mtrf", "w/o", (0.556, 2.104, 32.83)),
+    ("lego", "pose", "mtrf", "w/", (0.051, 0.178, 28.72)), ("lego", "pose", "mtrf", "w/o", (0.354, 0.933, 27.54)),
+    # first and last rows of Tab. 1 and a MipNeRF-360 row (most likely to be garbled in extraction)
+    ("chair", "pose", "ngp", "w/", (0.101, 0.514, 33.98)), ("ship", "pose", "mtrf", "w/o", (0.540, 0.562, 27.69)),
+    ("room", "pose", "mtrf", "w/o", (0.091, 0.132, 27.03)), ("counter", "pose", "ngp", "w/o", (0.529, 0.483, 20.96)),
+]
+
+
+@pytest.mark.parametrize("scene,task,model,arm,values", SPOT_CHECKS)
+def test_paper_tab1_cells(scene, task, model, arm, values):
+    got = paper_numbers(scene, task, model)[arm]
+    assert (got["rot_err_deg"], got["trans_err_x100"], got["psnr"]) == pytest.approx(values, abs=1e-9)
+
+
+def test_paper_tab3_and_barf_cells():
+    assert paper_numbers("lego", "fewshot")["w/"]["psnr"] == 22.46 and paper_numbers("lego", "fewshot")["w/o"]["psnr"] == 19.85
+    assert paper_numbers("mic", "fewshot")["w/"]["psnr"] == 29.92 and paper_numbers("mic", "fewshot")["w/o"]["psnr"] == 26.88
+    assert paper_numbers("ship", "fewshot")["w/o"] == {"psnr": 16.23, "ssim": 0.663, "lpips": 0.306}
+    assert paper_numbers("room", "fewshot")["w/"] == {"psnr": 25.14, "ssim": 0.805, "lpips": 0.186}
+    assert paper_numbers("Bicycle", "fewshot")["w/o"]["psnr"] == 21.08  # case-insensitive scene names
+    assert barf_numbers("lego", "pose") == {"rot_err_deg": 0.074, "trans_err_x100": 0.430, "psnr": 28.03}
+    assert barf_numbers("counter", "pose")["rot_err_deg"] == 26.91 and barf_numbers("lego", "fewshot") == {}
+    assert paper_numbers("lego", "fewshot", "mtrf") == {}  # Tab. 3 is NGP only
+
+
+def test_paper_tables_are_complete():
+    scenes = NERF_SYNTHETIC + MIPNERF360
+    assert len(scenes) == 14 and set(BARF) == set(scenes)
+    for scene in scenes:
+        for model in ("ngp", "mtrf"):
+            assert set(PAPER[(scene, "pose", model)]) == {"w/", "w/o"}
+        assert set(PAPER[(scene, "fewshot", "ngp")]["w/"]) == {"psnr", "ssim", "lpips"}
+    assert len(PAPER) == 14 * 3
 
 
 def test_pose_table_has_paper_numbers_for_the_model():
     text = format_table("pose", {"lego": arms()}, "ngp")
     header, rule, row = text.splitlines()
-    assert header.count("|") == rule.count("|") == row.count("|") == 8  # scene + 3 metrics x 2 arms
+    assert header.count("|") == rule.count("|") == row.count("|") == 9  # scene + 3 metrics x 2 arms + BARF
     assert "0.070 (0.049)" in row and "1.500 (1.181)" in row and "30.03 (32.53)" in row
+    assert "0.497 (0.167)" in row and "BARF" in header and row.rstrip(" |").endswith("0.074 / 0.430 / 28.03")
     mtrf = format_table("pose", {"lego": arms(model="mtrf")}, "mtrf").splitlines()[2]
     assert "0.070 (0.051)" in mtrf and "27.54" in mtrf
 
@@ -22,9 +67,38 @@ def test_builtin_scene_gets_no_paper_numbers():
     row = format_table("fewshot", {"chair": arms(source="builtin")}).splitlines()[2]
     assert "(" not in row and "30.03" in row  # the built-in chair is not NeRF-synthetic's chair
     row = format_table("fewshot", {"chair": arms()}).splitlines()[2]
-    assert "30.03 (25.72)" in row
+    assert "30.03 (25.72)" in row and "0.050 (0.076)" in row
 
 
 def test_missing_values_are_marked():
     row = format_table("fewshot", {"lego": {"w/": {"psnr": 25.0}}}).splitlines()[2]
     assert "n/a" in row
+
+
+def test_lego_mic_tables_for_both_models_and_tasks():
+    """What `warpnerf table --scenes lego,mic --models ngp,mtrf --tasks pose,fewshot` prints, from given metrics."""
+    from warpnerf.sweep import RunResult, SweepSpec, expand
+    from warpnerf.table import tables_markdown
+
+    spec = SweepSpec(scenes=["lego", "mic"], models=["ngp", "mtrf"], tasks=["pose", "fewshot"], out="o")
+    results = []
+    for run in expand(spec):
+        m = arms(model=run.model)["w/" if run.arm == "g2fr" else "w/o"]
+        results.append(RunResult(run, status="done", metrics={**m, "iters": 20, "device": "cpu", "threads": 2},
+                                 machine="box (4 CPU cores)"))
+    text = tables_markdown(results)
+    heads = [line for line in text.splitlines() if line.startswith("### ")]
+    assert heads == ["### Camera-pose optimisation (cf. paper Tab. 1), ngp", "### Camera-pose optimisation (cf. paper Tab. 1), mtrf",
+                     "### Few-shot reconstruction (cf. paper Tab. 3), ngp", "### Few-shot reconstruction (cf. paper Tab. 3), mtrf"]
+    assert "ran on cpu, 2 Warp threads on box (4 CPU cores)" in text and "2-core" not in text
+    assert "BARF's quantity" in text
+    rows = [line for line in text.splitlines() if line.startswith("| mic |")]
+    assert "0.070 (0.042)" in rows[0] and "0.070 (0.043)" in rows[1]  # Tab. 1 mic, NGP then Mtrf
+    assert "30.03 (29.92)" in rows[2] and "(" not in rows[3]  # Tab. 3 is NGP only
+
+
+def test_seeds_are_averaged():
+    from warpnerf.table import _mean_over_seeds
+
+    m = _mean_over_seeds([{"psnr": 20.0, "scene": "a", "g2fr": True}, {"psnr": 22.0, "scene": "a", "g2fr": True}])
+    assert m == {"psnr": 21.0, "scene": "a", "g2fr": True}

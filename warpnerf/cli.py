@@ -1,4 +1,4 @@
-"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``render``, ``export``, ``view``.
+"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``sweep``, ``render``, ``export``, ``view``.
 
 Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
 User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
@@ -101,14 +101,15 @@ def cmd_scenes(args) -> int:
 
 
 def cmd_table(args) -> int:
+    from .sweep import report_failures
     from .table import run_table
 
     _setup_device(args)
-    text = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), data_root=args.data_root,
-                     iters=args.iters, out=args.out, seed=args.seed, device=args.device, config_file=args.config,
-                     reuse=args.reuse)
-    print(text)
-    return 0
+    res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
+                    data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
+                    config_file=args.config, threads=args.threads, progress=not args.quiet)
+    print(res["table"])
+    return report_failures(res["failed"])
 
 
 class _Parser(argparse.ArgumentParser):
@@ -149,15 +150,20 @@ def build_parser() -> argparse.ArgumentParser:
     tb = sub.add_parser("table", help="reproduce the paper's tables: runs with and without G2fR")
     tb.add_argument("--scenes", default="lego")
     tb.add_argument("--tasks", default="fewshot,pose")
+    tb.add_argument("--models", default="ngp", help="comma-separated encodings: ngp, mtrf")
     tb.add_argument("--data-root", default=None)
     tb.add_argument("--iters", type=int, default=None, help="override the presets' iterations")
     tb.add_argument("--out", default="runs/table")
     tb.add_argument("--seed", type=int, default=0)
     tb.add_argument("--config", default=None, help="TOML file overriding the task presets (both arms)")
     tb.add_argument("--reuse", action="store_true",
-                    help="read run folders that already hold a finished run of the same configuration")
+                    help="(always on now: a run folder holding a finished run of the same configuration is read)")
+    tb.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_device(tb)
     tb.set_defaults(func=cmd_table)
+    from . import sweep  # 'warpnerf sweep SPEC.toml' (local or Ray backend)
+
+    sweep.add_parser(sub)
 
     b = sub.add_parser("bench", help="benchmarks that print measured numbers")
     b.add_argument("what", choices=["encoding", "step"], help="what to benchmark")

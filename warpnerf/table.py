@@ -1,9 +1,10 @@
-"""``warpnerf table``: the paper's comparison, with and without G²fR, as a Markdown table.
+"""``warpnerf table``: the paper's comparison, with and without G²fR, as Markdown tables.
 
-For each scene and task it trains twice with the same seed (same views, same pose noise), once
-with G²fR and once without, and writes ``<out>/table.md`` shaped like the paper's Tab. 1 (pose:
-rotation error, translation error x100, PSNR) and Tab. 3 (few-shot: PSNR, SSIM), with the
-paper's own numbers beside ours where the paper reports the scene.
+A thin layer over ``warpnerf sweep`` (``sweep.py``): the flags make a sweep spec (scenes x
+models x tasks x both arms, one seed), the sweep trains or skips each run, and this module turns
+the collected metrics into ``<out>/table.md`` shaped like the paper's Tab. 1 (pose: rotation
+error, translation error x100, PSNR, with BARF's published row) and Tab. 3 (few-shot: PSNR, SSIM,
+LPIPS), with the paper's own numbers (``paper.py``) in brackets where the paper reports the scene.
 """
 
 from __future__ import annotations
@@ -11,47 +12,34 @@ from __future__ import annotations
 import os
 from typing import Optional
 
-from .config import build_config
-from .run import finished_metrics, run_training
+from .paper import barf_numbers, paper_numbers
 
-# The paper's numbers on NeRF-synthetic (Tab. 1 pose for lego, NGP and Mtrf; Tab. 3 few-shot, NGP).
-# Key (scene, task, model); w/ = with G²fR, w/o = without.
-PAPER_MTRF = {
-    ("lego", "pose"): {"w/": {"rot_err_deg": 0.051, "trans_err_x100": 0.178, "psnr": 28.72},
-                       "w/o": {"rot_err_deg": 0.354, "trans_err_x100": 0.933, "psnr": 27.54}},
-}
-PAPER_NGP = {
-    ("lego", "pose"): {"w/": {"rot_err_deg": 0.049, "trans_err_x100": 0.167, "psnr": 32.53},
-                       "w/o": {"rot_err_deg": 1.181, "trans_err_x100": 4.361, "psnr": 31.33}},
-    ("lego", "fewshot"): {"w/": {"psnr": 22.46, "ssim": 0.860}, "w/o": {"psnr": 19.85, "ssim": 0.826}},
-    ("chair", "fewshot"): {"w/": {"psnr": 25.72, "ssim": 0.925}, "w/o": {"psnr": 17.02, "ssim": 0.847}},
-    ("drums", "fewshot"): {"w/": {"psnr": 14.67, "ssim": 0.724}, "w/o": {"psnr": 11.79, "ssim": 0.710}},
-    ("ficus", "fewshot"): {"w/": {"psnr": 17.90, "ssim": 0.869}, "w/o": {"psnr": 16.07, "ssim": 0.849}},
-    ("hotdog", "fewshot"): {"w/": {"psnr": 27.51, "ssim": 0.919}, "w/o": {"psnr": 18.07, "ssim": 0.876}},
-    ("materials", "fewshot"): {"w/": {"psnr": 17.89, "ssim": 0.813}, "w/o": {"psnr": 16.12, "ssim": 0.730}},
-    ("mic", "fewshot"): {"w/": {"psnr": 29.92, "ssim": 0.967}, "w/o": {"psnr": 26.88, "ssim": 0.943}},
-    ("ship", "fewshot"): {"w/": {"psnr": 18.38, "ssim": 0.683}, "w/o": {"psnr": 16.23, "ssim": 0.663}},
-}
-PAPER = {**{(scene, task, "ngp"): v for (scene, task), v in PAPER_NGP.items()},
-         **{(scene, task, "mtrf"): v for (scene, task), v in PAPER_MTRF.items()}}
+TRANS_NOTE = ("translation error x100 is BARF's quantity: mean over views of 100 x |t_w2c(aligned) - t_w2c(gt)| "
+              "after the Sim(3) alignment of camera centres (`trans_err_x100`), as in the paper")
 
 COLUMNS = {
-    "pose": [("rot_err_deg", "rot. err (deg)", "{:.3f}"), ("trans_err_x100", "trans. err (x100)", "{:.3f}"),
+    "pose": [("rot_err_deg", "rot. err (deg)", "{:.3f}"), ("trans_err_x100", "trans. err (x100, BARF)", "{:.3f}"),
              ("psnr", "PSNR", "{:.2f}")],
-    "fewshot": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}")],
-    "full": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}")],
+    "fewshot": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
+    "full": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
 }
+TITLES = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)", "fewshot": "Few-shot reconstruction (cf. paper Tab. 3)",
+          "full": "Full reconstruction"}
+MODEL_NAMES = {"ngp": "NGP (hash grid)", "mtrf": "Mtrf (multi-resolution CP)"}
 
 
 def format_table(task: str, rows: dict, model: str = "ngp") -> str:
     """rows: scene -> {"w/": metrics, "w/o": metrics}. Paper numbers sit in brackets where known
-    (only for dataset scenes: a built-in scene of the same name is a different scene)."""
+    (only for dataset scenes: a built-in scene of the same name is a different scene). The pose
+    table ends with the paper's BARF row for the scene (rot / trans / PSNR)."""
     cols = COLUMNS[task]
     head = ["scene"] + [f"{label} {arm}" for _, label, _ in cols for arm in ("w/ G2fR", "w/o")]
+    if task == "pose":
+        head.append("BARF (paper): rot / trans / PSNR")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for scene, arms in rows.items():
         builtin = any(m.get("scene_source") == "builtin" for m in arms.values())
-        paper = {} if builtin else PAPER.get((scene, task, model), {})
+        paper = {} if builtin else paper_numbers(scene, task, model)
         cells = [scene]
         for key, _, fmt in cols:
             for arm in ("w/", "w/o"):
@@ -60,6 +48,9 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
                 if arm in paper and key in paper[arm]:
                     cell += f" ({fmt.format(paper[arm][key])})"
                 cells.append(cell)
+        if task == "pose":
+            barf = {} if builtin else barf_numbers(scene, task)
+            cells.append(" / ".join(fmt.format(barf[k]) for k, _, fmt in cols) if barf else "")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -74,43 +65,106 @@ def plot_pose_comparison(path: str, scene: str, arms: dict) -> None:
         if hist:
             curves[label] = (hist["step"], hist["rot_err_deg"], hist["trans_err_x100"])
     if curves:
-        plots.plot_pose_error_curve(path, curves, title=f"{scene}: pose error during training")
+        plots.plot_pose_error_curve(path, curves, title=f"{scene}: pose error during training (translation: BARF's)")
 
 
-def run_table(scenes: list[str], tasks: list[str], data_root: Optional[str] = None, iters: Optional[int] = None,
-              out: str = "runs/table", seed: int = 0, device: str = "auto", config_file: Optional[str] = None,
-              reuse: bool = False) -> str:
-    """Train both arms of every (scene, task) and write ``<out>/table.md``.
+def _mean_over_seeds(metrics: list[dict]) -> dict:
+    """Numeric metrics averaged over seeds; everything else from the first seed."""
+    out = dict(metrics[0])
+    for key, value in metrics[0].items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            vals = [m.get(key) for m in metrics]
+            if all(isinstance(v, (int, float)) for v in vals):
+                out[key] = sum(vals) / len(vals)
+    return out
 
-    ``config_file`` overrides the task presets for both arms. With ``reuse`` a run folder that
-    already holds a finished run of the identical configuration is read instead of retrained.
-    """
+
+def _ran_on(results: list) -> str:
+    """Where the runs ran, from the runs themselves (device, threads, machine), not assumed."""
+    seen = []
+    for r in results:
+        m = r.metrics or {}
+        if not m:
+            continue
+        dev = f"{m.get('device', '?')}" + (f", {m['threads']} Warp threads" if m.get("device") == "cpu" and
+                                           m.get("threads") else "")
+        text = f"{dev} on {r.machine}" if r.machine else dev
+        if text not in seen:
+            seen.append(text)
+    return "; ".join(seen) if seen else "no finished run"
+
+
+def tables_markdown(results: list) -> str:
+    """Markdown sections, one per (task, model), from sweep ``RunResult``s (done or skipped)."""
     sections = []
-    for task in tasks:
+    keys = []
+    for r in results:
+        k = (r.run.task, r.run.model)
+        if k not in keys:
+            keys.append(k)
+    for task, model in keys:
+        group = [r for r in results if (r.run.task, r.run.model) == (task, model)]
         rows: dict = {}
-        for scene in scenes:
+        for scene in dict.fromkeys(r.run.scene for r in group):
             rows[scene] = {}
-            for arm, g2fr in (("w/", True), ("w/o", False)):
-                run_dir = os.path.join(out, f"{scene}_{task}_{'g2fr' if g2fr else 'nog2fr'}")
-                # no turntable: the table needs metrics only, and a 400x400 video costs minutes on a CPU
-                cfg = build_config(task, config_file, overrides=dict(scene=scene, data_root=data_root, iters=iters,
-                                                                     g2fr=g2fr, seed=seed, out=run_dir, device=device,
-                                                                     video_frames=0))
-                done = finished_metrics(cfg) if reuse else None
-                if done is not None:
-                    print(f"reusing the finished run in {run_dir}")
-                rows[scene][arm] = done if done is not None else run_training(cfg, overwrite=True)
-            if task == "pose":
-                plot_pose_comparison(os.path.join(out, f"{scene}_pose_error.png"), scene, rows[scene])
-        title = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)",
-                 "fewshot": "Few-shot reconstruction (cf. paper Tab. 3)"}.get(task, f"Task {task}")
-        iters_used = {arm: r.get("iters") for s in rows.values() for arm, r in s.items()}
-        model = next(r.get("model", "ngp") for s in rows.values() for r in s.values())
-        sections.append(f"### {title}\n\nOurs (paper in brackets), model {model}, seed {seed}, iterations "
-                        f"{sorted(set(iters_used.values()))}, 2-core CPU unless the run says otherwise.\n\n"
-                        f"{format_table(task, rows, model)}\n")
-    text = "\n".join(sections)
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "table.md"), "w") as fh:
+            for arm, label in (("g2fr", "w/"), ("nog2fr", "w/o")):
+                ms = [r.metrics for r in group if r.run.scene == scene and r.run.arm == arm and r.metrics]
+                if ms:
+                    rows[scene][label] = _mean_over_seeds(ms)
+        finished = [r for r in group if r.metrics]
+        seeds = sorted({r.run.seed for r in finished})
+        iters = sorted({r.metrics.get("iters") for r in finished if r.metrics.get("iters") is not None})
+        failed = [r.run.name for r in group if r.status == "failed"]
+        note = (f"Ours (paper in brackets), model {MODEL_NAMES.get(model, model)}, seed{'s' if len(seeds) > 1 else ''} "
+                f"{', '.join(map(str, seeds)) or 'none'}{' (mean)' if len(seeds) > 1 else ''}, iterations "
+                f"{', '.join(map(str, iters)) or 'n/a'}; ran on {_ran_on(finished)}.")
+        if task == "pose":
+            note += f" The {TRANS_NOTE}."
+        if failed:
+            note += f" Failed runs (n/a): {', '.join(failed)}."
+        sections.append(f"### {TITLES.get(task, task)}, {model}\n\n{note}\n\n{format_table(task, rows, model)}\n")
+    return "\n".join(sections)
+
+
+def write_tables(spec, results: list) -> str:
+    """``<out>/table.md`` and, for pose runs, ``<out>/<scene>_<model>_pose_error.png``; returns the Markdown."""
+    text = tables_markdown(results)
+    for r in results:
+        if r.run.task == "pose" and r.run.arm == "g2fr" and r.run.seed == min(spec.seeds):
+            arms = {label: next((o.metrics for o in results if o.metrics and o.run.task == "pose"
+                                 and o.run.scene == r.run.scene and o.run.model == r.run.model
+                                 and o.run.seed == r.run.seed and o.run.arm == arm), {})
+                    for arm, label in (("g2fr", "w/"), ("nog2fr", "w/o"))}
+            plot_pose_comparison(os.path.join(spec.out, f"{r.run.scene}_{r.run.model}_pose_error.png"), r.run.scene,
+                                 arms)
+    tmp = os.path.join(spec.out, "table.md.tmp")
+    with open(tmp, "w") as fh:
         fh.write(text)
+    os.replace(tmp, os.path.join(spec.out, "table.md"))
     return text
+
+
+def table_spec(scenes: list[str], tasks: list[str], models: Optional[list[str]] = None, data_root: Optional[str] = None,
+               iters: Optional[int] = None, out: str = "runs/table", seed: int = 0, device: str = "auto",
+               config_file: Optional[str] = None, threads: Optional[int] = None):
+    """The sweep spec behind ``warpnerf table``: both arms of every scene x model x task, one seed.
+    No turntable: the table needs metrics only, and a 400x400 video costs minutes on a CPU."""
+    from .sweep import SweepSpec
+
+    overrides = {"video_frames": 0}
+    if iters is not None:
+        overrides["iters"] = iters
+    return SweepSpec(scenes=scenes, models=models or ["ngp"], tasks=tasks, seeds=[seed], out=out,
+                     data_root=data_root, config=config_file, device=device, num_cpus=threads, overrides=overrides,
+                     retries=0)
+
+
+def run_table(scenes: list[str], tasks: list[str], models: Optional[list[str]] = None, data_root: Optional[str] = None,
+              iters: Optional[int] = None, out: str = "runs/table", seed: int = 0, device: str = "auto",
+              config_file: Optional[str] = None, threads: Optional[int] = None, progress: bool = True) -> dict:
+    """Train (or skip, when finished with the identical configuration) both arms of every run and
+    write ``<out>/table.md``. Returns ``run_sweep``'s result (``table``, ``results``, ``failed``)."""
+    from .sweep import run_sweep
+
+    spec = table_spec(scenes, tasks, models, data_root, iters, out, seed, device, config_file, threads)
+    return run_sweep(spec, progress=progress)
