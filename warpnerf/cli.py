@@ -177,6 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
+
+    from .process import add_parser as add_process_parser  # photos -> COLMAP -> dataset (issue 12)
+
+    add_process_parser(sub)
     return parser
 
 
