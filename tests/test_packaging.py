@@ -15,7 +15,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # import name -> distribution name, where they differ
 DIST = {"warp": "warp-lang", "PIL": "pillow", "mpl_toolkits": "matplotlib", "tomli": "tomli", "skimage": "scikit-image",
         "imageio_ffmpeg": "imageio-ffmpeg", "tomli_w": "tomli-w"}
-OPTIONAL = {"lpips"}  # imported inside try/except, used only when its weights are present
+OPTIONAL = {"lpips", "pycolmap"}  # lpips: imported inside try/except, used only when its weights are present;
+# pycolmap: the "colmap" extra, imported only by `warpnerf process` (clear error when absent)
 
 tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")
 

@@ -250,3 +250,16 @@ def test_thin_builtin_scene_trains(tmp_path):
     empty = -10 * math.log10(float(((scene.test.images[::40][:3] - 1.0) ** 2).mean()))
     assert res["psnr"] > empty + 6, (res["psnr"], empty)
     assert trainer.occupancy.occupied_fraction() > 0.0
+
+
+@pytest.mark.parametrize("kind,sigma", [("blender", 0.15), ("llff", 0.01), ("colmap", 0.01), ("transforms", 0.01)])
+def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
+    """Paper: sigma 0.15 on synthetic scenes, 0.01 on real captures; --pose-noise overrides both."""
+    from types import SimpleNamespace
+
+    from warpnerf.config import TrainConfig
+    from warpnerf.tasks import PoseTask
+
+    scene = SimpleNamespace(kind=kind)
+    assert PoseTask(TrainConfig(task="pose")).noise_sigmas(scene) == (sigma, sigma)
+    assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)

@@ -182,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
     from . import doctor  # machine report; imports torch/warp only when it runs
 
     doctor.add_parser(sub)
+
+    from .process import add_parser as add_process_parser  # photos -> COLMAP -> dataset (issue 12)
+
+    add_process_parser(sub)
     return parser
 
 

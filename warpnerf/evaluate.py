@@ -115,21 +115,6 @@ def evaluate(trainer: "Trainer", out_dir: Optional[str] = None, progress: bool =
         "eval_resolution": [views.height, views.width],
     }
 
-def render_turntable(trainer: "Trainer", path: str, frames: int, progress: bool = True) -> None:
-    """A GIF orbiting the scene along the test path (Blender scenes) or the training cameras."""
-    import imageio.v2 as imageio
-    from tqdm.auto import tqdm
-
-    src = trainer.scene.test if len(trainer.scene.test) >= frames else trainer.scene.train
-    pick = np.linspace(0, len(src) - 1, frames).round().astype(int)
-    weights = trainer.level_weights(trainer.cfg.iters)
-    images = []
-    for k in tqdm(pick, desc="video", disable=not progress, dynamic_ncols=True):
-        c2w = src.c2w[k].to(trainer.device)
-        img = trainer.renderer.render_image(c2w, src.height, src.width, src.focal, src.cx, src.cy, weights)
-        images.append((img["rgb"].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8))
-    imageio.mimsave(path, images, duration=0.08, loop=0)
-
 
 def camera_z_scale(height: int, width: int, focal: float, cx: float, cy: float) -> torch.Tensor:
     """(H, W) factor turning distance along a pixel's unit ray into camera-z depth."""

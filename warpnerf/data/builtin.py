@@ -392,3 +392,120 @@ def load_builtin(
     scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
     scene.source = "builtin"
     return scene
+
+
+# ---- the built-in scenes written out in capture layouts (test data nobody downloads) ------------
+
+EXPORT_LAYOUTS = ("colmap-text", "colmap-binary", "transforms")
+
+
+def export_builtin(
+    name: str,
+    out_dir: str,
+    layout: str,
+    resolution: int | None = None,
+    cache_dir: str | None = None,
+    counts=DEFAULT_COUNTS,
+    points_per_view: int = 200,
+    progress: bool = True,
+) -> str:
+    """Write built-in scene ``name`` as a capture in ``layout``; returns ``out_dir``.
+
+    Layouts (what :func:`warpnerf.data.colmap.load_colmap` and
+    :func:`warpnerf.data.transforms_json.load_transforms_json` read):
+
+    * ``colmap-text`` / ``colmap-binary``: ``images/<split>_r_<k>.png``, ``sparse/0/cameras,
+      images, points3D`` (.txt / .bin; one SIMPLE_PINHOLE camera) and ``{train,val,test}_list.txt``;
+    * ``transforms``: the same images and one ``transforms.json`` with ``fl_x``/``fl_y``/``cx``/``cy``/
+      ``w``/``h`` and ``{train,val,test}_filenames``.
+
+    Images are the cached Blender-layout PNGs, byte for byte, and the poses the same cameras, so
+    each layout loads the same views as :func:`load_builtin` up to the documented normalisation.
+    The sparse points are depth-map back-projections of ``points_per_view`` random foreground
+    pixels of each training view (fixed seed), observed by that view only.
+    """
+    if layout not in EXPORT_LAYOUTS:
+        raise DatasetError(f"unknown export layout '{layout}'; choose one of {', '.join(EXPORT_LAYOUTS)}")
+    from PIL import Image
+
+    from warpnerf.data.blender import read_depth, read_transforms
+
+    src = ensure_builtin(name, resolution, cache_dir, counts, progress)
+    img_dir = os.path.join(out_dir, "images")
+    os.makedirs(img_dir, exist_ok=True)
+    frames, lists = [], {}
+    width = height = None
+    for split in ("train", "val", "test"):
+        meta = read_transforms(os.path.join(src, f"transforms_{split}.json"))
+        lists[split] = []
+        for k, fr in enumerate(meta["frames"]):
+            stem = os.path.normpath(os.path.join(src, fr["file_path"]))
+            out_name = f"{split}_r_{k}.png"
+            shutil.copyfile(stem + ".png", os.path.join(img_dir, out_name))
+            depth = read_depth(os.path.normpath(os.path.join(src, fr["depth_path"])), meta["depth_scale"])
+            height, width = depth.shape
+            c2w = np.asarray(fr["transform_matrix"], np.float64)[:3, :4]
+            frames.append((split, out_name, c2w, depth, stem + ".png"))
+            lists[split].append(out_name)
+    focal = focal_from_angle(width)
+    cx, cy = width / 2.0, height / 2.0
+
+    if layout == "transforms":
+        meta = {
+            "camera_model": "OPENCV",
+            "fl_x": focal, "fl_y": focal, "cx": cx, "cy": cy, "w": width, "h": height,
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+            "frames": [{"file_path": f"images/{n}", "transform_matrix": np.vstack([m, [0, 0, 0, 1]]).tolist()}
+                       for _, n, m, _, _ in frames],
+            **{f"{s}_filenames": [f"images/{n}" for n in lists[s]] for s in lists},
+            "warpnerf": {"scene": name, "generator_version": GENERATOR_VERSION, "resolution": width},
+        }
+        with open(os.path.join(out_dir, "transforms.json"), "w", encoding="utf-8") as f:
+            json.dump(meta, f, indent=1)
+        return out_dir
+
+    from warpnerf.data import colmap as cm
+
+    rng = np.random.default_rng(0)
+    cameras = {1: cm.Camera(1, "SIMPLE_PINHOLE", width, height, np.array([focal, cx, cy]))}
+    images, points = {}, {}
+    for iid, (split, out_name, c2w, depth, png) in enumerate(frames, start=1):
+        q, t = cm.c2w_to_colmap(c2w)
+        xys, pids = np.zeros((0, 2)), np.zeros(0, np.int64)
+        if split == "train":
+            rows, cols = np.nonzero(depth > 0)
+            pick = rng.choice(len(rows), size=min(points_per_view, len(rows)), replace=False)
+            rows, cols = rows[pick], cols[pick]
+            u, v, z = cols + 0.5, rows + 0.5, depth[rows, cols].astype(np.float64)
+            cam = np.stack([(u - cx) / focal * z, -(v - cy) / focal * z, -z], 1)  # OpenGL camera axes
+            world = cam @ c2w[:, :3].T + c2w[:, 3]
+            rgb = np.asarray(Image.open(png).convert("RGB"))[rows, cols]
+            first = len(points) + 1
+            pids = np.arange(first, first + len(world), dtype=np.int64)
+            xys = np.stack([u, v], 1)
+            for j, pid in enumerate(pids):
+                points[int(pid)] = cm.Point3D(int(pid), world[j], rgb[j], 0.5, np.array([iid]), np.array([j]))
+        images[iid] = cm.Image(iid, q, t, 1, out_name, xys, pids)
+    ext = ".txt" if layout == "colmap-text" else ".bin"
+    cm.write_model(os.path.join(out_dir, "sparse", "0"), cameras, images, points, ext)
+    for split, names in lists.items():
+        with open(os.path.join(out_dir, f"{split}_list.txt"), "w", encoding="utf-8") as f:
+            f.write("".join(n + "\n" for n in names))
+    return out_dir
+
+
+def render_garden(c2w: np.ndarray, width: int, height: int, focal: float) -> tuple[np.ndarray, np.ndarray]:
+    """Render the unbounded ``garden`` layout (chair on a textured ground inside a textured
+    environment sphere, :func:`warpnerf.data.builtin_meshes.garden_mesh`) from (N, 3, 4) cameras.
+
+    Two layers with the unchanged Warp tracer: the foreground with shadows, the environment
+    without (a shadow ray would always hit the enclosing sphere); per pixel the nearer hit wins.
+    Returns rgb (N, H, W, 3) float32 (every pixel is covered) and camera-z depth (N, H, W).
+    """
+    from warpnerf.data.builtin_meshes import garden_environment, garden_mesh
+
+    fg_rgba, fg_depth = MeshRenderer(garden_mesh()).render(c2w, width, height, focal)
+    env_rgba, env_depth = MeshRenderer(garden_environment(), shadows=False).render(c2w, width, height, focal)
+    use_fg = (fg_depth > 0) & ((fg_depth < env_depth) | (env_depth <= 0))
+    rgb = np.where(use_fg[..., None], fg_rgba[..., :3], env_rgba[..., :3])
+    return rgb.astype(np.float32), np.where(use_fg, fg_depth, env_depth).astype(np.float32)

@@ -354,3 +354,45 @@ SCENES = {
     "vase": (vase_mesh, "glazed vase: one smooth surface of revolution, slowly varying colour (low frequency)"),
     "stand": (stand_mesh, "microphone on a stand: thin pole, wire grille and cable over mostly empty views (thin structures)"),
 }
+
+
+# ---- an unbounded scene: the chair on a textured ground inside a distant textured environment ----
+
+GARDEN_GROUND_HALF = 8.0  # the ground is the square |x|, |y| <= 8 at the chair's floor
+GARDEN_ENV_RADIUS = 15.0  # the environment is a sphere of this radius around the origin
+
+
+def garden_mesh() -> SceneMesh:
+    """The chair standing on a large veined stone ground (the foreground layer; casts shadows).
+
+    Rendered together with :func:`garden_environment` by ``builtin.render_garden``: the
+    environment is a separate layer because a shadow ray would always hit the enclosing sphere.
+    """
+    chair = chair_mesh()
+    mb = MeshBuilder()
+    mb.materials = list(chair.materials)
+    mb._points.append(chair.points.astype(np.float64))
+    mb._normals.append(chair.normals.astype(np.float64))
+    mb._faces.append(chair.faces.astype(np.int64))
+    mb._mats.append(chair.face_material.astype(np.int32))
+    mb._count = len(chair.points)
+    stone = mb.material(Material(MARBLE, (0.72, 0.66, 0.55), (0.12, 0.16, 0.22), freq=1.7))
+    z = float(chair.points[:, 2].min()) - 1e-3  # just below the legs: no z-fighting
+    h = GARDEN_GROUND_HALF
+    n = 16  # a grid, not one quad: long thin triangles lose precision in the ray query
+    g = np.linspace(-h, h, n + 1)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)], -1)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)])
+    mb.add(pts, faces, stone, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+    return mb.build()
+
+
+def garden_environment() -> SceneMesh:
+    """A distant sphere (radius GARDEN_ENV_RADIUS) with a large-scale marbled pattern: the background layer."""
+    mb = MeshBuilder()
+    sky = mb.material(Material(MARBLE, (0.55, 0.70, 0.85), (0.20, 0.28, 0.18), freq=0.35))
+    mb.sphere((0.0, 0.0, 0.0), GARDEN_ENV_RADIUS, sky, segments=96)
+    return mb.build()

@@ -3,7 +3,8 @@
 Resolution order for ``load_scene(name)`` with a data root (argument, else ``$WARPNERF_DATA``):
 
 1. ``<root>/nerf_synthetic/<name>``, 2. ``<root>/nerf_llff_data/<name>``, 3. ``<root>/<name>``
-   -- the first folder holding ``transforms_train.json`` (Blender) or ``poses_bounds.npy`` (LLFF);
+   -- the first folder holding ``transforms_train.json`` (Blender), ``poses_bounds.npy`` (LLFF),
+   ``transforms.json`` (nerfstudio / instant-ngp) or a COLMAP model in ``sparse/0`` (COLMAP);
 4. the built-in scene ``<name>`` (generated and cached on first use);
 5. otherwise a DatasetError listing the built-in and dataset scenes available.
 """
@@ -38,11 +39,17 @@ def data_root_from(data_root: str | None = None) -> str | None:
 
 
 def scene_layout(folder: str) -> str | None:
-    """"blender", "llff" or None, from the files in ``folder``."""
+    """"blender", "llff", "transforms", "colmap" or None, from the files in ``folder``."""
     if os.path.isfile(os.path.join(folder, "transforms_train.json")):
         return "blender"
     if os.path.isfile(os.path.join(folder, "poses_bounds.npy")):
         return "llff"
+    if os.path.isfile(os.path.join(folder, "transforms.json")):
+        return "transforms"
+    from warpnerf.data.colmap import find_sparse
+
+    if find_sparse(folder):
+        return "colmap"
     return None
 
 
@@ -106,7 +113,9 @@ def load_scene(
         splits, white_background: Blender layouts (datasets and built-ins).
         builtin_resolution, cache_dir, progress: built-in scenes only (image side in pixels,
             default warpnerf.data.builtin.DEFAULT_RESOLUTION; cache folder; tqdm bar).
-        llff_factor, llff_holdout: LLFF only (``images_<factor>``; every n-th view is a test view).
+        llff_factor: LLFF only (``images_<factor>``).
+        llff_holdout: LLFF, COLMAP and transforms.json: every n-th view is a test view (unless
+            the files name a split).
 
     Raises:
         DatasetError: unknown name (the message lists what exists) or any loader error.
@@ -122,6 +131,16 @@ def load_scene(
 
             return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
                                 allow_rgb=allow_rgb)
+        if layout == "transforms":
+            from warpnerf.data.transforms_json import load_transforms_json
+
+            return load_transforms_json(folder, downscale=downscale, holdout=llff_holdout,
+                                        white_background=white_background, name=name)
+        if layout == "colmap":
+            from warpnerf.data.colmap import load_colmap
+
+            return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
+                               name=name)
         from warpnerf.data.llff import load_llff
 
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)
@@ -182,5 +201,5 @@ def describe_scenes(data_root: str | None = None, cache_dir: str | None = None) 
     width = max((len(n) for n in found), default=0)
     for name, (folder, layout) in sorted(found.items()):
         shadow = "  (overrides the built-in scene)" if name in builtins else ""
-        lines.append(f"  {name:<{width}}  {layout:<7}  {folder}{shadow}")
+        lines.append(f"  {name:<{width}}  {layout:<10}  {folder}{shadow}")
     return "\n".join(lines)

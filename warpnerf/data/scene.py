@@ -66,7 +66,7 @@ class Scene:
 
     name: str
     source: str  # "dataset" or "builtin"
-    kind: str  # "blender" or "llff"
+    kind: str  # "blender" (synthetic, built-in), "llff", "colmap" or "transforms"
     train: Views
     test: Views
     val: Optional[Views] = None

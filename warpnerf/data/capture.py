@@ -1,0 +1,173 @@
+"""From frames of a capture (COLMAP or transforms.json) to a :class:`Scene`.
+
+Shared by :mod:`warpnerf.data.colmap` and :mod:`warpnerf.data.transforms_json`: check the poses,
+normalise the world (:mod:`warpnerf.data.normalize`), read the images, resample them onto one
+pinhole camera (:mod:`warpnerf.data.distortion`), split train/test and derive the bounds.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_pinhole, shared_pinhole
+from warpnerf.data.errors import DatasetError
+from warpnerf.data.images import area_downscale, load_parallel, read_image
+from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
+from warpnerf.data.scene import Scene, Views
+
+
+@dataclass
+class Frame:
+    """One registered image of a capture."""
+
+    name: str  # name as the source files give it (split lists refer to it)
+    path: str  # image file
+    c2w: np.ndarray  # (3, 4) float64 OpenGL camera-to-world, capture world frame
+    camera: Intrinsics
+
+
+def check_frames(frames: list[Frame], source: str) -> None:
+    """Raise DatasetError naming ``source`` when there is no frame or a pose is not finite."""
+    if not frames:
+        raise DatasetError(f"{source}: no registered image (the capture has no camera pose)")
+    for fr in frames:
+        if not np.all(np.isfinite(fr.c2w)):
+            raise DatasetError(f"{source}: non-finite pose for image {fr.name}")
+        rot = fr.c2w[:, :3]
+        if abs(np.linalg.det(rot) - 1.0) > 1e-3 or np.abs(rot.T @ rot - np.eye(3)).max() > 1e-3:
+            raise DatasetError(f"{source}: the pose of image {fr.name} is not a rotation (scaled or sheared matrix)")
+
+
+def resolve_split(names: list[str], lists: dict[str, list[str]] | None, holdout: int, source: str):
+    """{split: positions} from named lists (entries matched by full name, then by file name
+    without folders, then without extension), else test = every ``holdout``-th image."""
+    if not lists or not lists.get("train"):
+        train, test = every_nth_split(names, holdout)
+        if not train:
+            raise DatasetError(f"{source}: no training image left with every {holdout}-th image held out of {len(names)}")
+        return {"train": train, "test": test}
+    keys = [
+        {n: i for i, n in enumerate(names)},
+        {os.path.basename(n): i for i, n in enumerate(names)},
+        {os.path.splitext(os.path.basename(n))[0]: i for i, n in enumerate(names)},
+    ]
+    out = {}
+    for split, entries in lists.items():
+        pos = []
+        for e in entries:
+            e = str(e).strip()
+            if e.startswith("./"):
+                e = e[2:]
+            hit = next((k[c] for k, c in zip(keys, (e, os.path.basename(e), os.path.splitext(os.path.basename(e))[0])) if c in k), None)
+            if hit is None:
+                raise DatasetError(f"{source}: {split} list names image '{e}', which is not among the registered images")
+            pos.append(hit)
+        out[split] = pos
+    if not out.get("test"):
+        rest = [i for i in range(len(names)) if i not in set(out["train"])]
+        out["test"] = rest or out["train"][:1]  # a capture without test views still evaluates on something
+    return out
+
+
+def build_scene(
+    frames: list[Frame],
+    points: np.ndarray | None,
+    root: str,
+    kind: str,
+    source: str,
+    name: str | None = None,
+    split_lists: dict[str, list[str]] | None = None,
+    holdout: int = 8,
+    downscale: int = 1,
+    white_background: bool = True,
+    aabb_scale: float | None = None,
+    normalize: bool = True,
+) -> Scene:
+    """Assemble a Scene (source "dataset") from registered frames.
+
+    Args:
+        frames: every registered image (all splits).
+        points: (P, 3) sparse points in the capture frame, or None.
+        root: scene folder; kind: "colmap" or "transforms"; source: file named in errors.
+        split_lists: {"train": [...], "val": [...], "test": [...]} image names, or None for
+            every ``holdout``-th image (sorted by name) as test.
+        downscale: integer block-average factor after resampling.
+        white_background: composite images with alpha on white (else black); also the renderer's
+            background.
+        aabb_scale: fallback box half-side when there are no points (see normalize).
+        normalize: apply :func:`normalization_from_cameras` (False keeps the capture frame).
+
+    The applied map is returned in ``scene.normalization`` (a :class:`Normalization`).
+    """
+    check_frames(frames, source)
+    if not isinstance(downscale, int) or downscale < 1:
+        raise DatasetError(f"downscale must be a positive integer, got {downscale!r}")
+    c2w = np.stack([fr.c2w for fr in frames])
+    norm = normalization_from_cameras(c2w) if normalize else Normalization.identity()
+    c2w_n = norm.c2w(c2w)
+    pts_n = norm.points(points) if points is not None and len(points) else None
+
+    target = shared_pinhole([fr.camera for fr in frames])
+    w0, h0, f0, cx0, cy0 = target
+    h, w = h0 // downscale, w0 // downscale
+    if h == 0 or w == 0:
+        raise DatasetError(f"downscale factor {downscale} is larger than the images ({w0}x{h0})")
+    n = len(frames)
+    images = np.empty((n, h, w, 3), np.float32)
+    alpha = np.ones((n, h, w), np.float32)
+    bg = np.asarray((1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0), np.float32)
+
+    def load_one(i: int, path: str) -> None:
+        cam = frames[i].camera
+        img = read_image(path)
+        if img.shape[:2] != (cam.height, cam.width):
+            raise DatasetError(f"image size mismatch: {path} is {img.shape[1]}x{img.shape[0]}, its camera says {cam.width}x{cam.height}")
+        rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
+        a = img[..., 3] if img.shape[-1] == 4 else np.ones(img.shape[:2], np.float32)
+        # Composite first (linear in (rgb a, a), so resampling afterwards gives the same result).
+        rgba = np.concatenate([rgb * a[..., None] + bg * (1.0 - a[..., None]), a[..., None]], -1)
+        if needs_resampling(cam, target):
+            rgba = resample_to_pinhole(rgba, cam, target)
+        rgba = area_downscale(rgba, downscale)
+        images[i] = rgba[..., :3]
+        alpha[i] = rgba[..., 3]
+
+    load_parallel([fr.path for fr in frames], load_one)
+
+    names = [fr.name for fr in frames]
+    splits = resolve_split(names, split_lists, holdout, source)
+    near, far, aabb = bounds_from_points(c2w_n[splits["train"]], pts_n, aabb_scale)
+
+    def views(sel: list[int]) -> Views:
+        sel_t = torch.as_tensor(sel, dtype=torch.long)
+        return Views(
+            images=torch.from_numpy(images)[sel_t],
+            c2w=torch.from_numpy(c2w_n[sel].astype(np.float32)),
+            focal=f0 / downscale,
+            cx=cx0 / downscale,
+            cy=cy0 / downscale,
+            ids=list(sel),
+            alpha=torch.from_numpy(alpha)[sel_t],
+        )
+
+    scene = Scene(
+        name=name or os.path.basename(os.path.normpath(root)),
+        source="dataset",
+        kind=kind,
+        train=views(splits["train"]),
+        test=views(splits["test"]),
+        val=views(splits["val"]) if splits.get("val") else None,
+        aabb=aabb,
+        near=near,
+        far=far,
+        background=tuple(float(b) for b in bg),
+        ndc=False,
+        root=os.path.abspath(root),
+    )
+    scene.normalization = norm  # not a dataclass field: only capture scenes have one
+    scene.image_names = names
+    return scene

@@ -1,0 +1,133 @@
+"""Scene normalisation for captures with arbitrary world frames (COLMAP, transforms.json).
+
+A structure-from-motion world has an arbitrary origin, orientation and scale. Like nerfstudio's
+``auto_orient_and_center_poses(method="up", center_method="poses")`` followed by its
+``scale_factor = 1 / max |t|``, every such scene is mapped by one similarity
+
+    x' = s * (R @ x + t)          (points; camera centres likewise)
+    R_c2w' = R @ R_c2w            (camera orientations; directions d' = R @ d, still unit)
+
+where ``R`` turns the mean camera up axis (OpenGL +y, averaged over all views) onto +z,
+``t = -R @ mean(camera centres)`` and ``s = 1 / max |component of the centred, rotated camera
+centres|``, so the cameras lie in [-1, 1]^3 with at least one on the boundary. The map is
+:class:`Normalization`; loaders compute it from all views (every split) before splitting.
+
+Bounds: ``near``/``far`` come from the depths of the sparse points seen by the cameras (robust
+percentiles), else from the camera spread; the box ``aabb`` from the points (robust bounding
+cube), else the cube of half-side ``aabb_scale`` (instant-ngp's key, default 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Normalization:
+    """The similarity x' = scale * (rotation @ x + translation) applied to a capture's world."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    scale: float
+
+    @staticmethod
+    def identity() -> "Normalization":
+        return Normalization(np.eye(3), np.zeros(3), 1.0)
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) homogeneous form of the map."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.scale * self.translation
+        return m
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        """(N, 3) world points -> normalised points (float64)."""
+        x = np.asarray(x, np.float64)
+        return self.scale * (x @ self.rotation.T + self.translation)
+
+    def c2w(self, c2w: np.ndarray) -> np.ndarray:
+        """(N, 3, 4) OpenGL camera-to-world -> normalised (float64); rotations stay orthonormal."""
+        c2w = np.asarray(c2w, np.float64)
+        rot = np.einsum("ij,njk->nik", self.rotation, c2w[:, :, :3])
+        return np.concatenate([rot, self.points(c2w[:, :, 3])[:, :, None]], axis=2)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation turning unit vector ``a`` onto unit vector ``b`` (shortest arc)."""
+    a = np.asarray(a, np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1.0 + 1e-10:
+        # Opposite vectors: a half turn about any axis perpendicular to a.
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
+
+
+def normalization_from_cameras(c2w: np.ndarray, orient: bool = True, center: bool = True, rescale: bool = True) -> Normalization:
+    """The documented normalisation (module docstring) of (N, 3, 4) OpenGL cameras.
+
+    ``orient``/``center``/``rescale`` switch off each part (identity rotation, zero shift, unit scale).
+    """
+    c2w = np.asarray(c2w, np.float64)
+    rot = rotation_between(c2w[:, :, 1].mean(0), [0.0, 0.0, 1.0]) if orient else np.eye(3)
+    t = -rot @ c2w[:, :, 3].mean(0) if center else np.zeros(3)
+    scale = 1.0
+    if rescale:
+        extent = np.abs(c2w[:, :, 3] @ rot.T + t).max()
+        scale = 1.0 / extent if extent > 1e-12 else 1.0
+    return Normalization(rot, t, float(scale))
+
+
+def bounds_from_points(c2w: np.ndarray, points: np.ndarray | None, aabb_scale: float | None = None):
+    """(near, far, aabb) of a normalised scene.
+
+    Args:
+        c2w: (N, 3, 4) normalised OpenGL cameras (the training views).
+        points: (P, 3) normalised sparse points, or None / empty.
+        aabb_scale: half-side of the fallback cube (instant-ngp's ``aabb_scale``), default 1.
+
+    With points: depths along each camera's view axis of the points in front of it give
+    ``near = 0.5 * 1st percentile`` and ``far = 1.5 * 99th percentile`` (the marcher also clips
+    to the box, so a generous far costs nothing); the box is the cube around the 0.5-99.5 %
+    percentile bounds of the points, padded by 10 %. Without points: near 0.01, far = the
+    diagonal of the fallback cube plus the camera spread, box the fallback cube.
+    """
+    half = float(aabb_scale) if aabb_scale else 1.0
+    c2w = np.asarray(c2w, np.float64)
+    if points is not None and len(points) >= 8:
+        pts = np.asarray(points, np.float64)
+        rel = pts[None, :, :] - c2w[:, None, :, 3]  # (N, P, 3)
+        z = -np.einsum("npk,nk->np", rel, c2w[:, :, 2])  # depth along -z (OpenGL looks down -z)
+        z = z[z > 1e-6]
+        if z.size >= 8:
+            near = 0.5 * float(np.percentile(z, 1.0))
+            far = 1.5 * float(np.percentile(z, 99.0))
+            lo = np.percentile(pts, 0.5, axis=0)
+            hi = np.percentile(pts, 99.5, axis=0)
+            centre = 0.5 * (lo + hi)
+            r = 0.55 * float((hi - lo).max())  # half the largest extent, padded by 10 %
+            r = max(r, 1e-3)
+            aabb = tuple(float(x) for x in np.concatenate([centre - r, centre + r]))
+            return near, far, aabb
+    spread = float(np.linalg.norm(c2w[:, :, 3], axis=1).max())
+    return 0.01, 2.0 * np.sqrt(3.0) * half + spread, (-half, -half, -half, half, half, half)
+
+
+def every_nth_split(names: list[str], holdout: int = 8) -> tuple[list[int], list[int]]:
+    """(train, test) positions with test = every ``holdout``-th name in sorted order (LLFF/MipNeRF-360).
+
+    ``names`` need not be sorted; positions refer to the given order.
+    """
+    order = sorted(range(len(names)), key=lambda i: names[i])
+    test = sorted(order[k] for k in range(0, len(order), holdout))
+    test_set = set(test)
+    return [i for i in range(len(names)) if i not in test_set], test

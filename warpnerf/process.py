@@ -1,0 +1,232 @@
+"""``warpnerf process --images DIR --out DATASET``: photos -> COLMAP poses -> a scene folder.
+
+Runs COLMAP's structure from motion (SIFT feature extraction, exhaustive or sequential matching,
+incremental mapping) through pycolmap (``pip install 'warpnerf[colmap]'``), else through the
+``colmap`` program when it is on the PATH, and writes what :func:`warpnerf.data.colmap.load_colmap`
+reads::
+
+    DATASET/images/...           # copies of the photos
+    DATASET/sparse/0/*.bin       # the largest reconstruction
+    DATASET/colmap/database.db   # features and matches (kept for re-runs / inspection)
+
+Mapping that registers fewer than ``min_registered`` images is an error saying how many
+registered; a partial registration is reported on stderr and the dataset is still written
+(unregistered photos are left out of the model, so the loader skips them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+from warpnerf.data.errors import DatasetError
+from warpnerf.data.images import IMAGE_SUFFIXES
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+def list_images(folder: str) -> list[str]:
+    if not os.path.isdir(folder):
+        raise DatasetError(f"image folder not found: {folder}")
+    names = sorted(f for f in os.listdir(folder) if os.path.splitext(f)[1].lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise DatasetError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    return names
+
+
+def backend() -> str:
+    """"pycolmap", "colmap" (the program) or raise DatasetError saying how to get one."""
+    try:
+        import pycolmap  # noqa: F401
+
+        return "pycolmap"
+    except ImportError:
+        pass
+    if shutil.which("colmap"):
+        return "colmap"
+    raise DatasetError("warpnerf process needs COLMAP: pip install 'warpnerf[colmap]' (pycolmap), or put the colmap program on the PATH")
+
+
+def process_images(
+    images: str,
+    out: str,
+    camera_model: str = "SIMPLE_RADIAL",
+    camera_params: str | None = None,
+    single_camera: bool = True,
+    matcher: str = "exhaustive",
+    max_image_size: int = 1600,
+    min_registered: int = 3,
+    threads: int = -1,
+    seed: int = 0,
+    use: str | None = None,
+    progress: bool = True,
+) -> dict:
+    """Run structure from motion on the photos in ``images`` and write the dataset ``out``.
+
+    Args:
+        camera_model: COLMAP model to estimate (one the loaders support).
+        camera_params: known intrinsics as COLMAP's comma-separated parameter list (then kept fixed).
+        single_camera: one shared camera for all photos (one device, fixed zoom).
+        matcher: "exhaustive" (up to a few hundred photos) or "sequential" (video frames).
+        max_image_size: longest side SIFT sees, pixels.
+        min_registered: fewer registered images is an error.
+        use: force "pycolmap" or "colmap" (default: what is installed).
+
+    Returns {"images": N, "registered": M, "points": P, "seconds": t, "backend": name}.
+    """
+    from tqdm.auto import tqdm
+
+    if camera_model not in CAMERA_MODELS:
+        raise DatasetError(f"--camera-model {camera_model} is not one warpnerf loads ({', '.join(CAMERA_MODELS)})")
+    if matcher not in ("exhaustive", "sequential"):
+        raise DatasetError(f"--matcher must be exhaustive or sequential, got {matcher}")
+    names = list_images(images)
+    which = use or backend()
+    t0 = time.time()
+    work = os.path.join(out, "colmap")
+    img_out = os.path.join(out, "images")
+    if os.path.abspath(images) != os.path.abspath(img_out):
+        os.makedirs(img_out, exist_ok=True)
+        for n in names:
+            shutil.copy2(os.path.join(images, n), os.path.join(img_out, n))
+    os.makedirs(work, exist_ok=True)
+    db = os.path.join(work, "database.db")
+    if os.path.exists(db):
+        os.remove(db)  # stale features of another image set would be matched too
+    models = os.path.join(work, "sparse")
+    shutil.rmtree(models, ignore_errors=True)
+    os.makedirs(models)
+
+    bar = tqdm(total=3 + len(names), desc="colmap: features", unit="step", disable=not progress, dynamic_ncols=True)
+    with bar:
+        if which == "pycolmap":
+            rec = _run_pycolmap(img_out, db, models, names, camera_model, camera_params, single_camera, matcher,
+                                max_image_size, threads, seed, bar)
+            registered = rec.num_reg_images() if rec is not None else 0
+            n_points = rec.num_points3D() if rec is not None else 0
+            if registered >= min_registered:
+                sparse = os.path.join(out, "sparse", "0")
+                shutil.rmtree(sparse, ignore_errors=True)
+                os.makedirs(sparse)
+                rec.write(sparse)
+        else:
+            registered, n_points = _run_colmap_program(img_out, db, models, out, camera_model, camera_params,
+                                                       single_camera, matcher, max_image_size, bar)
+    if registered < min_registered:
+        raise DatasetError(
+            f"COLMAP mapping failed: {registered} of {len(names)} images in {images} registered (need {min_registered}); "
+            "photos need overlap (each point seen from several views) and texture"
+        )
+    if registered < len(names):
+        print(f"warpnerf process: {registered} of {len(names)} images registered; the others are left out", file=sys.stderr)
+    return {"images": len(names), "registered": int(registered), "points": int(n_points),
+            "seconds": round(time.time() - t0, 1), "backend": which}
+
+
+def _run_pycolmap(img_dir, db, models, names, camera_model, camera_params, single_camera, matcher, max_image_size,
+                  threads, seed, bar):
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    if camera_params:
+        reader.camera_params = camera_params
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = max_image_size
+    extraction.num_threads = threads
+    extraction.use_gpu = False
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
+    pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    bar.update(1)
+    bar.set_description("colmap: matching")
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = False
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_sequential(db, matching_options=matching, device=pycolmap.Device.cpu)
+    bar.update(1)
+    bar.set_description("colmap: mapping")
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = threads
+    opts.random_seed = seed
+    if camera_params:  # known intrinsics stay fixed
+        opts.ba_refine_focal_length = False
+        opts.ba_refine_principal_point = False
+        opts.ba_refine_extra_params = False
+    recs = pycolmap.incremental_mapping(db, img_dir, models, options=opts,
+                                        initial_image_pair_callback=lambda: bar.update(2),
+                                        next_image_callback=lambda: bar.update(1))
+    bar.set_description("colmap: done")
+    bar.update(bar.total - bar.n)
+    if not recs:
+        return None
+    return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, single_camera, matcher, max_image_size, bar):
+    def run(*args):
+        proc = subprocess.run(["colmap", *args], capture_output=True, text=True)
+        if proc.returncode != 0:
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise DatasetError(f"colmap {args[0]} failed (exit {proc.returncode}): {tail[0]}")
+
+    extra = ["--ImageReader.camera_params", camera_params] if camera_params else []
+    run("feature_extractor", "--database_path", db, "--image_path", img_dir, "--ImageReader.camera_model", camera_model,
+        "--ImageReader.single_camera", str(int(single_camera)), "--SiftExtraction.use_gpu", "0",
+        "--SiftExtraction.max_image_size", str(max_image_size), *extra)
+    bar.update(1)
+    run(f"{matcher}_matcher", "--database_path", db, "--SiftMatching.use_gpu", "0")
+    bar.update(1)
+    run("mapper", "--database_path", db, "--image_path", img_dir, "--output_path", models)
+    bar.update(bar.total - bar.n)
+    from warpnerf.data.colmap import read_model
+
+    best, best_n, best_pts = None, 0, 0
+    for sub in sorted(os.listdir(models)):
+        folder = os.path.join(models, sub)
+        try:
+            _, imgs, pts = read_model(folder)
+        except DatasetError:
+            continue
+        if len(imgs) > best_n:
+            best, best_n, best_pts = folder, len(imgs), len(pts)
+    if best is not None:
+        sparse = os.path.join(out, "sparse", "0")
+        shutil.rmtree(sparse, ignore_errors=True)
+        shutil.copytree(best, sparse)
+    return best_n, best_pts
+
+
+# ---- CLI ----------------------------------------------------------------------------------------
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser("process", help="photos -> COLMAP camera poses -> a dataset folder warpnerf trains on")
+    p.add_argument("--images", required=True, help="folder of photos")
+    p.add_argument("--out", required=True, help="dataset folder to write (images/, sparse/0/, colmap/)")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS)
+    p.add_argument("--camera-params", default=None, help="known intrinsics, COLMAP order, comma-separated (kept fixed)")
+    p.add_argument("--per-image-camera", action="store_true", help="estimate a camera per photo (mixed devices/zoom)")
+    p.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"))
+    p.add_argument("--max-image-size", type=int, default=1600)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    res = process_images(args.images, args.out, camera_model=args.camera_model, camera_params=args.camera_params,
+                         single_camera=not args.per_image_camera, matcher=args.matcher,
+                         max_image_size=args.max_image_size, progress=not args.quiet)
+    print(f"registered {res['registered']} of {res['images']} images, {res['points']} points, "
+          f"{res['seconds']} s ({res['backend']})")
+    print(f"dataset: {os.path.abspath(args.out)}  (train with: warpnerf train --scene {os.path.basename(os.path.normpath(args.out))} "
+          f"--data-root {os.path.dirname(os.path.abspath(args.out))})")
+    return 0
