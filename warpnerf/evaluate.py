@@ -1,5 +1,5 @@
 """Evaluation outside the training loop: test-view metrics and renders, BARF's test-time pose
-refinement, the turntable video and the run folder's file helpers.
+refinement and the run folder's file helpers (the run's video: :mod:`warpnerf.video`).
 
 Every function takes a :class:`warpnerf.trainer.Trainer` and only reads it (field, renderer,
 scene, config); none changes training state, so a checkpoint saved before evaluation resumes
