@@ -88,7 +88,7 @@ def test_g2fr_masks_levels_early():
     encoder.forward = lambda x, level_weights=None: seen.append(level_weights) or forward(x, level_weights)
     table0 = encoder.table.detach().clone()
     t.train_step(0)
-    assert seen and all(torch.equal(w.cpu(), t.schedule(0)) for w in seen)
+    assert seen and all(list(w) == t.schedule(0).tolist() for w in seen)  # host LevelWeights or a tensor
     assert t.schedule(0).tolist() == [1.0] + [0.0] * 7
     level1 = encoder.spec.offsets[1]
     assert not torch.equal(encoder.table[:level1], table0[:level1])

@@ -1,4 +1,4 @@
-"""The ``warpnerf`` command line: ``train``, ``eval``, ``bench``, ``scenes``, ``table``, ``sweep``, ``render``, ``export``, ``view``.
+"""The ``warpnerf`` command line: train, eval, scenes, table, sweep, bench, render, export, view, doctor, process.
 
 Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
 User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
