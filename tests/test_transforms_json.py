@@ -178,7 +178,7 @@ def test_non_finite_pose(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError) as e:
         load_transforms_json(str(tmp_path))
-    check_one_line(e, "non-finite pose", "transforms.json")
+    check_one_line(e, "non-finite values", "frame 0", "transforms.json")  # caught while reading the file
 
 
 def test_no_registered_image(tmp_path):

@@ -17,14 +17,13 @@ in scene units. ``fl_x`` (+ optional ``cx``, ``cy``) may replace ``camera_angle_
 
 from __future__ import annotations
 
-import json
 import math
 import os
 
 import numpy as np
 import torch
 
-from warpnerf.data.errors import DatasetError, check_c2w
+from warpnerf.data.errors import DatasetError, check_frames, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
 from warpnerf.data.scene import Scene, Views
 
@@ -89,33 +88,10 @@ def load_blender(
 
 def read_transforms(path: str) -> dict:
     """Parse and validate one ``transforms_*.json``; raises DatasetError naming the file and key."""
-    if not os.path.isfile(path):
-        raise DatasetError(f"missing {path} (a Blender scene needs transforms_train.json and transforms_test.json)")
-    try:
-        with open(path, encoding="utf-8") as f:
-            meta = json.load(f)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"malformed JSON in {path}: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from None
-    if not isinstance(meta, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    meta = read_json_object(path, " (a Blender scene needs transforms_train.json and transforms_test.json)")
     if "camera_angle_x" not in meta and "fl_x" not in meta:
         raise DatasetError(f"{path}: missing key 'camera_angle_x'")
-    frames = meta.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: missing or empty key 'frames'")
-    for i, fr in enumerate(frames):
-        for key in ("file_path", "transform_matrix"):
-            if not isinstance(fr, dict) or key not in fr:
-                raise DatasetError(f"{path}: frame {i} has no '{key}'")
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{path}: frame {i} 'transform_matrix' is not a numeric 4x4 matrix") from None
-        if m.shape not in ((4, 4), (3, 4)):
-            raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
-        check_c2w(m, f"{path}: frame {i} 'transform_matrix'")
+    check_frames(path, meta.get("frames"))
     return meta
 
 

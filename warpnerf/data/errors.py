@@ -28,3 +28,43 @@ def check_c2w(m, where: str, tol: float = 1e-3) -> None:
     det = float(np.linalg.det(r))
     if det < 0:
         raise DatasetError(f"{where}: rotation is a reflection (det = {det:.3f}, expected +1)")
+
+
+def read_json_object(path: str, missing: str = "") -> dict:
+    """The JSON object in ``path``; DatasetError naming the file when it is missing, unreadable,
+    malformed or not an object (``missing``: what to add to the missing-file message)."""
+    import json
+    import os
+
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing {path}{missing}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            meta = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"malformed JSON in {path}: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    return meta
+
+
+def check_frames(path: str, frames, empty: str = "") -> None:
+    """Check a transforms file's ``frames``: a non-empty list whose entries have ``file_path`` and a
+    finite, rotation-valued 4x4 (or 3x4) ``transform_matrix`` (``empty``: added to that message)."""
+    import numpy as np
+
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: missing or empty key 'frames'{empty}")
+    for i, fr in enumerate(frames):
+        for key in ("file_path", "transform_matrix"):
+            if not isinstance(fr, dict) or key not in fr:
+                raise DatasetError(f"{path}: frame {i} has no '{key}'")
+        try:
+            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{path}: frame {i} 'transform_matrix' is not a numeric 4x4 matrix") from None
+        if m.shape not in ((4, 4), (3, 4)):
+            raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
+        check_c2w(m, f"{path}: frame {i} 'transform_matrix'")

@@ -20,7 +20,6 @@ test view. The folder must not also hold ``transforms_train.json`` (that is the 
 
 from __future__ import annotations
 
-import json
 import math
 import os
 
@@ -28,7 +27,7 @@ import numpy as np
 
 from warpnerf.data.capture import Frame, build_scene
 from warpnerf.data.distortion import Intrinsics
-from warpnerf.data.errors import DatasetError
+from warpnerf.data.errors import DatasetError, check_frames, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, read_image
 from warpnerf.data.scene import Scene
 
@@ -39,33 +38,11 @@ SUPPORTED_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL
 
 def read_transforms_json(path: str) -> dict:
     """Parse and check ``transforms.json``; DatasetError naming the file and key at fault."""
-    if not os.path.isfile(path):
-        raise DatasetError(f"missing {path}")
-    try:
-        with open(path, encoding="utf-8") as f:
-            meta = json.load(f)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"malformed JSON in {path}: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from None
-    if not isinstance(meta, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    meta = read_json_object(path)
     model = str(meta.get("camera_model", "OPENCV")).upper()
     if model not in SUPPORTED_CAMERA_MODELS:
         raise DatasetError(f"{path}: camera_model {model} is not supported (supported: {', '.join(SUPPORTED_CAMERA_MODELS)})")
-    frames = meta.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path}: missing or empty key 'frames' (no registered image)")
-    for i, fr in enumerate(frames):
-        for key in ("file_path", "transform_matrix"):
-            if not isinstance(fr, dict) or key not in fr:
-                raise DatasetError(f"{path}: frame {i} has no '{key}'")
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{path}: frame {i} 'transform_matrix' is not a numeric 4x4 matrix") from None
-        if m.shape not in ((4, 4), (3, 4)):
-            raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
+    check_frames(path, meta.get("frames"), " (no registered image)")
     return meta
 
 
