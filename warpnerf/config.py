@@ -110,6 +110,8 @@ class TrainConfig:
     max_resolution: int = 2048  # points per axis of the finest level (over the scene box)
     cp_rank: int = 8  # mtrf: CP components R per level (output L*R features)
     cp_max_resolution: int = 512  # mtrf: line length of the finest level
+    cp_lr: float = 2e-2  # mtrf: Adam lr of the CP lines (TensoRF: 0.02); the MLPs keep lr
+    cp_density_shift: float = 0.0  # mtrf: added to the density MLP output before exp (TensoRF: -10); < 0 starts nearly empty
     hidden: int = 64  # MLP width
     geo_features: int = 15  # density-MLP features passed to the color MLP
     # --- rendering ---
@@ -303,11 +305,13 @@ def validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, key)
         if value is not None and value < lo:
             raise ConfigError(f"{key} must be >= {lo}, got {value}")
-    positive = ("lr", "pose_lr", "pose_lr_final", "lr_final_ratio")
+    positive = ("lr", "cp_lr", "pose_lr", "pose_lr_final", "lr_final_ratio")
     for key in positive:
         value = getattr(cfg, key)
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a positive finite number, got {value}")
+    if not math.isfinite(cfg.cp_density_shift):
+        raise ConfigError(f"cp_density_shift must be a finite number, got {cfg.cp_density_shift}")
     for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step"):
         value = getattr(cfg, key)
         if value is not None and not (value >= 0 and math.isfinite(value)):

@@ -39,10 +39,15 @@ class GridField(nn.Module):
         encoder: a grid encoder (``out_dim``, ``forward(x01, level_weights)``, ``grid_parameters()``),
             see :func:`warpnerf.encoders.make_grid_encoder`.
         hidden: MLP width; geo_features: density-MLP outputs fed to the color MLP.
+        density_shift: constant added to the density MLP's output before ``exp`` (TensoRF's
+            ``density_shift``): sigma = exp(h + shift). 0 for the hash grid; a negative shift makes
+            the untrained field nearly transparent, so the occupancy grid starts sparse.
     """
 
-    def __init__(self, aabb, encoder: nn.Module, hidden: int = 64, geo_features: int = 15):
+    def __init__(self, aabb, encoder: nn.Module, hidden: int = 64, geo_features: int = 15,
+                 density_shift: float = 0.0):
         super().__init__()
+        self.density_shift = float(density_shift)
         self.register_buffer("aabb_min", torch.tensor(aabb[:3], dtype=torch.float32), persistent=True)
         self.register_buffer("aabb_size", torch.tensor(aabb[3:], dtype=torch.float32) - self.aabb_min, persistent=True)
         self.encoder = encoder
@@ -61,7 +66,7 @@ class GridField(nn.Module):
     def geometry(self, x: torch.Tensor, level_weights=None):
         """(N, 3) world points -> density (N,) per unit length, geometry features (N, geo_features)."""
         h = self.density_net(self.encoder(self.to_unit(x), level_weights))
-        return trunc_exp(h[:, 0]), h[:, 1:]
+        return trunc_exp(h[:, 0] + self.density_shift), h[:, 1:]
 
     def density(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
         """(N, 3) world points -> (N,) density, per unit length."""
@@ -76,10 +81,16 @@ class GridField(nn.Module):
         sigma, geo = self.geometry(x, level_weights)
         return sigma, self.color(geo, dirs)
 
-    def param_groups(self, lr: float, weight_decay_mlp: float) -> list[dict]:
-        """Adam groups: the grid without weight decay, the MLPs with a little (instant-ngp)."""
+    def param_groups(self, lr: float, weight_decay_mlp: float, grid_lr: float | None = None) -> list[dict]:
+        """Adam groups: the grid without weight decay, the MLPs with a little (instant-ngp).
+
+        ``grid_lr`` (default ``lr``) is the grid's own rate: CP lines want TensoRF's 0.02 where the
+        hash table and the MLPs use 0.01. Each group keeps its peak rate as ``base_lr``; the trainer
+        scales it by the shared schedule (warm-up, exponential decay)."""
         mlp = [p for n, p in self.named_parameters() if not n.startswith("encoder.")]
+        grid_lr = lr if grid_lr is None else grid_lr
         return [
-            {"params": list(self.encoder.grid_parameters()), "lr": lr, "weight_decay": 0.0, "name": "grid"},
-            {"params": mlp, "lr": lr, "weight_decay": weight_decay_mlp, "name": "mlp"},
+            {"params": list(self.encoder.grid_parameters()), "lr": grid_lr, "base_lr": grid_lr, "weight_decay": 0.0,
+             "name": "grid"},
+            {"params": mlp, "lr": lr, "base_lr": lr, "weight_decay": weight_decay_mlp, "name": "mlp"},
         ]

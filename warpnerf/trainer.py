@@ -50,7 +50,9 @@ class Trainer:
         self.background = torch.tensor(scene.background, dtype=torch.float32, device=self.device)
         self.train_c2w = views.c2w.to(self.device)
         encoder = make_grid_encoder(cfg, generator=torch.Generator().manual_seed(cfg.seed))
-        self.field = GridField(scene.aabb, encoder, cfg.hidden, cfg.geo_features).to(self.device)
+        mtrf = cfg.model == "mtrf"
+        self.field = GridField(scene.aabb, encoder, cfg.hidden, cfg.geo_features,
+                               density_shift=cfg.cp_density_shift if mtrf else 0.0).to(self.device)
         self.occupancy = OccupancyGrid(scene.aabb, cfg.occ_resolution, self.device, warmup_steps=cfg.occ_warmup,
                                        update_every=cfg.occ_update_every)
         ray_transform = None
@@ -63,7 +65,7 @@ class Trainer:
         self.renderer = Renderer(self.field, self.occupancy, scene.near, far, cfg.render_step or default_step(scene.aabb, cfg.march_steps),
                                  scene.background, cfg.max_samples_per_ray, ray_transform,
                                  sample_budget=cfg.sample_budget)
-        self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp), cfg.lr)
+        self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp, cfg.cp_lr if mtrf else None), cfg.lr)
         self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
         self.n_rays = cfg.batch_rays
         # linear lr warm-up from 1 % (nerfacc): at lr 1e-2 and 2^16 samples a step, thin scenes (mic)
@@ -122,11 +124,11 @@ class Trainer:
             empty_loss = torch.nn.functional.mse_loss(bg[:kept], target[:kept])
         if not torch.isfinite(loss):
             raise TrainingError(f"non-finite loss ({loss.item()}) at step {step}; try a lower --lr")
-        lr = cfg.lr * cfg.lr_final_ratio ** (step / max(cfg.iters - 1, 1))
+        factor = cfg.lr_final_ratio ** (step / max(cfg.iters - 1, 1))
         if step < self.lr_warmup:
-            lr *= 0.01 + 0.99 * step / self.lr_warmup
+            factor *= 0.01 + 0.99 * step / self.lr_warmup
         for g in self.optimizer.param_groups:
-            g["lr"] = lr
+            g["lr"] = g.get("base_lr", cfg.lr) * factor
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

@@ -101,33 +101,31 @@ class CPGridSpec:
 def init_cp_lines(
     spec: CPGridSpec,
     generator: torch.Generator | None = None,
-    scale: float = 0.3,
+    scale: float = 0.2,
     *,
-    noise: float = 0.1,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """Initial ``lines`` of shape (n_rows, 3, R): every entry ``scale * (1 + noise * N(0, 1))``.
+    """Initial ``lines`` of shape (n_rows, 3, R): every entry ``scale * N(0, 1)``, TensoRF's CP init.
 
-    Why a positive constant plus small noise: each feature is a product of three factors, so
-    the gradient reaching one factor is the upstream gradient times the *other two*.
-    A zero-mean init (TensoRF's CP uses N(0, 0.2^2)) makes products ~sigma^3 of random sign and
-    per-factor gradients ~sigma^2 that keep cancelling; a tiny zero-mean init makes them vanish
-    outright. Centring every factor on ``scale`` (0.3) gives products near scale^3 = 0.027 —
-    small, and the same everywhere, so the MLP's first bias absorbs it — while every factor gets
-    the upstream gradient times ~scale^2 = 0.09 from the first step on. The relative noise
-    (10 %) keeps the factors far from zero (no sign flips at start) and gives each component
-    and level a slightly different starting point.
+    Zero-mean random lines make every feature a product of three independent random factors:
+    it varies along each axis from the first step (spatially distinct inputs for the MLP) and
+    has random sign per component, magnitude ~scale^3 = 0.008. An earlier init centred every
+    factor on +0.3 (10 % noise) so that no factor started near zero; it gave nearly constant
+    features, and measured worse: lego 100x100, 300 steps, 21.6 dB with this init vs 17.8 dB
+    (tiny spheres scene 26.6 vs 23.7 dB). Factors near zero do not stall training: Adam
+    normalises the per-entry step, and each entry's gradient is the upstream gradient times
+    the other two (non-zero) factors.
 
-    ``generator`` (a CPU ``torch.Generator``) makes the init reproducible; the noise is drawn on
+    ``generator`` (a CPU ``torch.Generator``) makes the init reproducible; the values are drawn on
     CPU and then moved to ``device``.
     """
     if not isinstance(spec, CPGridSpec):
         raise TypeError(f"init_cp_lines: spec must be a CPGridSpec, got {type(spec).__name__}")
-    if not (scale > 0 and math.isfinite(scale)) or not (noise >= 0 and math.isfinite(noise)):
-        raise ValueError(f"init_cp_lines: need scale > 0 and noise >= 0, got {scale}, {noise}")
+    if not (scale > 0 and math.isfinite(scale)):
+        raise ValueError(f"init_cp_lines: need scale > 0, got {scale}")
     eps = torch.randn(spec.lines_shape, generator=generator, dtype=torch.float64)
-    return (scale * (1.0 + noise * eps)).to(dtype=dtype, device=device).contiguous()
+    return (scale * eps).to(dtype=dtype, device=device).contiguous()
 
 
 def cpgrid_encode(
