@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.fake_scenes import blender_matrix, write_blender, write_llff
+from fake_scenes import blender_matrix, write_blender, write_llff
 
 TRAIN = ["-m", "warpnerf.cli", "train", "--quiet", "--threads", "1", "--iters", "2", "--video-frames", "0"]
 
