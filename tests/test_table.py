@@ -102,3 +102,18 @@ def test_seeds_are_averaged():
 
     m = _mean_over_seeds([{"psnr": 20.0, "scene": "a", "g2fr": True}, {"psnr": 22.0, "scene": "a", "g2fr": True}])
     assert m == {"psnr": 21.0, "scene": "a", "g2fr": True}
+
+
+def test_fewshot_heldout_gap_and_plot(tmp_path):
+    """The few-shot section names the step where w/ G2fR leads the baseline most, from both arms'
+    held-out PSNR histories, and the comparison plot is written."""
+    from warpnerf.table import heldout_gap, plot_heldout_comparison
+
+    arms_ = {"w/": {"heldout_history": [[499, 20.0], [999, 22.5], [1499, 23.0]]},
+             "w/o": {"heldout_history": [[499, 20.5], [999, 21.0], [1499, 22.9]]}}
+    step, gap, w, wo = heldout_gap(arms_)
+    assert step == 999 and abs(gap - 1.5) < 1e-12 and (w, wo) == (22.5, 21.0)
+    assert heldout_gap({"w/": {}, "w/o": {}}) is None
+    path = tmp_path / "h.png"
+    assert plot_heldout_comparison(str(path), "lego", arms_) and path.stat().st_size > 1000
+    assert not plot_heldout_comparison(str(tmp_path / "none.png"), "lego", {"w/": {}})

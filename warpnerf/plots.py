@@ -148,6 +148,22 @@ def plot_pose_error_curve(
     return _save(fig, path)
 
 
+def plot_heldout_curves(path: str, runs: Mapping[str, tuple], title: str = "") -> str:
+    """Held-out PSNR against training iteration for several runs (e.g. few-shot with and without
+    G²fR): ``runs`` maps a label to ``(iterations, psnr_db)``. Returns the path."""
+    fig = _figure((6.5, 4))
+    ax = fig.subplots()
+    for i, (label, (it, psnr)) in enumerate(runs.items()):
+        ax.plot(_np(it), _np(psnr), marker="o", markersize=3, color=_RUN_COLOURS[i % len(_RUN_COLOURS)], label=label)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    return _save(fig, path)
+
+
 def _series(values, x_default: Optional[np.ndarray]):
     """(x, y) for one history entry: a list of numbers (x = the shared iteration axis when the
     lengths match, else 0..n-1) or a list of (iteration, value) pairs."""

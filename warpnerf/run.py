@@ -270,6 +270,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         "iters": cfg.iters,
         "train_seconds": trainer.train_seconds,
         "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
+        "heldout_history": [list(p) for p in trainer.history["heldout"]],  # [step, held-out PSNR dB] pairs
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),
         "train_view_ids": trainer.views.ids,

@@ -68,6 +68,33 @@ def plot_pose_comparison(path: str, scene: str, arms: dict) -> None:
         plots.plot_pose_error_curve(path, curves, title=f"{scene}: pose error during training (translation: BARF's)")
 
 
+def heldout_gap(arms: dict) -> Optional[tuple[int, float, float, float]]:
+    """Where the held-out PSNR of the G²fR arm leads the baseline most: ``(step, gap_db, w_db, wo_db)``
+    over the steps both arms measured (``heldout_history`` in metrics.json), or None."""
+    w = {int(s): v for s, v in arms.get("w/", {}).get("heldout_history") or []}
+    wo = {int(s): v for s, v in arms.get("w/o", {}).get("heldout_history") or []}
+    common = sorted(set(w) & set(wo))
+    if not common:
+        return None
+    step = max(common, key=lambda s: w[s] - wo[s])
+    return step, w[step] - wo[step], w[step], wo[step]
+
+
+def plot_heldout_comparison(path: str, scene: str, arms: dict) -> bool:
+    """Held-out PSNR over iterations, with and without G²fR, in one figure; False if no history."""
+    from . import plots
+
+    curves = {}
+    for arm, label in (("w/", "w/ G2fR"), ("w/o", "w/o G2fR")):
+        hist = arms.get(arm, {}).get("heldout_history")
+        if hist:
+            curves[label] = ([s for s, _ in hist], [v for _, v in hist])
+    if not curves:
+        return False
+    plots.plot_heldout_curves(path, curves, title=f"{scene}: held-out PSNR during training")
+    return True
+
+
 def _mean_over_seeds(metrics: list[dict]) -> dict:
     """Numeric metrics averaged over seeds; everything else from the first seed."""
     out = dict(metrics[0])
@@ -120,6 +147,12 @@ def tables_markdown(results: list) -> str:
                 f"{', '.join(map(str, iters)) or 'n/a'}; ran on {_ran_on(finished)}.")
         if task == "pose":
             note += f" The {TRANS_NOTE}."
+        if task == "fewshot":
+            for scene, arms in rows.items():
+                gap = heldout_gap(arms)
+                if gap:
+                    note += (f" {scene}: the held-out PSNR gap w/ - w/o is largest at step {gap[0] + 1}: "
+                             f"{gap[1]:+.2f} dB ({gap[2]:.2f} vs {gap[3]:.2f}).")
         if failed:
             note += f" Failed runs (n/a): {', '.join(failed)}."
         sections.append(f"### {TITLES.get(task, task)}, {model}\n\n{note}\n\n{format_table(task, rows, model)}\n")
@@ -127,9 +160,17 @@ def tables_markdown(results: list) -> str:
 
 
 def write_tables(spec, results: list) -> str:
-    """``<out>/table.md`` and, for pose runs, ``<out>/<scene>_<model>_pose_error.png``; returns the Markdown."""
+    """``<out>/table.md``, for pose runs ``<out>/<scene>_<model>_pose_error.png`` and for few-shot runs
+    ``<out>/<scene>_<model>_fewshot_heldout.png``; returns the Markdown."""
     text = tables_markdown(results)
     for r in results:
+        if r.run.task == "fewshot" and r.run.arm == "g2fr" and r.run.seed == min(spec.seeds):
+            arms = {label: next((o.metrics for o in results if o.metrics and o.run.task == "fewshot"
+                                 and o.run.scene == r.run.scene and o.run.model == r.run.model
+                                 and o.run.seed == r.run.seed and o.run.arm == arm), {})
+                    for arm, label in (("g2fr", "w/"), ("nog2fr", "w/o"))}
+            plot_heldout_comparison(os.path.join(spec.out, f"{r.run.scene}_{r.run.model}_fewshot_heldout.png"),
+                                    r.run.scene, arms)
         if r.run.task == "pose" and r.run.arm == "g2fr" and r.run.seed == min(spec.seeds):
             arms = {label: next((o.metrics for o in results if o.metrics and o.run.task == "pose"
                                  and o.run.scene == r.run.scene and o.run.model == r.run.model
