@@ -196,6 +196,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         raise ConfigError(str(e)) from None
     _configure_lpips(cfg)
     mode = prepare_run(cfg, overwrite, resume, force)
+    from .trainer import start_memory_window
+
+    start_memory_window()  # this run's peak memory, not that of earlier runs in this process
     out_dir = cfg.run_dir()
     if mode == "finished":
         print(f"{out_dir} is already finished; nothing to do")

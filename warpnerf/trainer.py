@@ -218,8 +218,34 @@ class Trainer:
         self.task.load_state_dict(state["task"])
 
 
+def start_memory_window() -> None:
+    """Begin a new peak-memory window for the run about to start.
+
+    Runs that share a process (``warpnerf table``/``sweep`` run them one after another) would
+    otherwise inherit the previous runs' high-water mark: a mic run after two lego runs was
+    stopped by ``memory_budget_mb`` at step 0 with a "peak" of 4401 MB that it never used. The
+    previous run's garbage is collected and returned to the system (glibc ``malloc_trim``), then
+    Linux's peak-RSS counter is reset (``/proc/self/clear_refs``, value 5); elsewhere this is a no-op
+    and the peak stays the process's."""
+    import gc
+
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:  # not Linux, or not permitted
+        pass
+
+
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MB (0 where the platform does not say)."""
+    """Peak resident memory of this process since the run began (``start_memory_window``), MB
+    (0 where the platform does not say)."""
     try:
         import resource
     except ImportError:  # pragma: no cover - Windows
