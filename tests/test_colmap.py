@@ -61,7 +61,7 @@ def normalized_blender(blender, capture):
         return dataclasses.replace(views, c2w=torch.from_numpy(norm.c2w(views.c2w.numpy()).astype(np.float32)))
 
     return dataclasses.replace(blender, train=tr(blender.train), test=tr(blender.test), val=tr(blender.val),
-                               aabb=capture.aabb, near=capture.near, far=capture.far), norm
+                               ray_space=capture.ray_space), norm
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -69,7 +69,7 @@ def test_capture_layout_gives_the_blender_rays(exported, layout):
     blender = load_blender(exported["blender"])
     scene = load_layout(layout, exported[layout])
     assert scene.kind == ("transforms" if layout == "transforms" else "colmap")
-    assert scene.background == blender.background and not scene.ndc
+    assert scene.background == blender.background and scene.ray_space.kind == "euclidean"
     for split in ("train", "val", "test"):
         a, b = getattr(blender, split), getattr(scene, split)
         assert len(a) == len(b) == COUNTS[("train", "val", "test").index(split)]
@@ -209,7 +209,7 @@ def test_short_training_matches_the_blender_load(exported):
     ref_scene, _ = normalized_blender(blender, scenes["colmap-binary"])
     ref = train_psnr(ref_scene)
     for layout, scene in scenes.items():
-        scene = dataclasses.replace(scene, aabb=ref_scene.aabb, near=ref_scene.near, far=ref_scene.far)
+        scene = dataclasses.replace(scene, ray_space=ref_scene.ray_space)
         psnr = train_psnr(scene)
         print(layout, psnr, ref)
         assert abs(psnr - ref) < 0.1, (layout, psnr, ref)

@@ -28,7 +28,7 @@ def test_dataset_wins_over_builtin(data_root):
 def test_standard_subfolders_and_layout_detection(data_root):
     assert load_scene("mic", data_root=data_root).kind == "blender"
     leaves = load_scene("leaves", data_root=data_root, llff_factor=4, llff_holdout=2)
-    assert (leaves.kind, leaves.ndc, leaves.test.ids) == ("llff", True, [0, 2])
+    assert (leaves.kind, leaves.ray_space.kind, leaves.test.ids) == ("llff", "ndc", [0, 2])
 
 
 def test_data_root_from_env(data_root, monkeypatch):

@@ -30,10 +30,11 @@ def test_sphere_mesh_from_an_analytic_density():
 
     from types import SimpleNamespace
 
+    from warpnerf.data.rayspace import RaySpace
     from warpnerf.occupancy import OccupancyGrid
 
     tr = SimpleNamespace(field=Ball(), occupancy=OccupancyGrid((-1, -1, -1, 1, 1, 1), 8), device=torch.device("cpu"),
-                         cfg=SimpleNamespace(iters=1), level_weights=lambda s: None, scene=SimpleNamespace(ndc=False))
+                         cfg=SimpleNamespace(iters=1), level_weights=lambda s: None, scene=SimpleNamespace(ray_space=RaySpace()))
     verts, faces, colors = E.extract_mesh(tr, resolution=65, threshold=50.0)
     r = np.linalg.norm(verts, axis=-1)
     assert abs(r.mean() - 0.5) < 0.02 and r.std() < 0.02  # grid spacing 1/32

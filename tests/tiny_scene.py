@@ -5,6 +5,7 @@ import math
 import torch
 
 from warpnerf.cameras import look_at
+from warpnerf.data.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 from warpnerf.renderer import pixel_rays
 
@@ -49,4 +50,4 @@ def tiny_scene(n_train: int = 24, n_test: int = 4, size: int = 32, seed: int = 0
     train_c2w, test_c2w = look_at(centres), look_at(test_centres)
     mk = lambda c2w: Views(render_spheres(c2w, size, focal), c2w, focal, size / 2, size / 2)  # noqa: E731
     return Scene(name="spheres", source="builtin", kind="blender", train=mk(train_c2w), test=mk(test_c2w),
-                 aabb=(-1.0, -1.0, -1.0, 1.0, 1.0, 1.0), near=1.0, far=5.0)
+                 ray_space=RaySpace.euclidean((-1.0, -1.0, -1.0, 1.0, 1.0, 1.0), near=1.0, far=5.0))

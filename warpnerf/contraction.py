@@ -11,7 +11,9 @@ space, which is why samples beyond the ball are spaced linearly in disparity
 cameras inside [-1, 1]^3, i.e. near the unit ball, as this assumes.
 
 Status: plain torch, differentiable, tested; NOT yet wired into ray marching, the occupancy grid
-or the encoders (those live in kernels/ and warpnerf/ops/, a separate piece of work).
+or the encoders (those live in kernels/ and warpnerf/ops/, a separate piece of work). The
+scene's ray space (:mod:`warpnerf.data.rayspace`, docs/design.md §6) reserves the kind
+``"contracted"`` for it.
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@
   colour the field emits towards a camera looking straight at the surface (view direction =
   the inward normal, i.e. the density gradient direction).
 * **points**: every training view is rendered (optionally downscaled); each pixel with opacity
-  above ``min_opacity`` becomes the point ``o + depth * d`` with the rendered colour. Forward-
-  facing (NDC) scenes are mapped back from NDC to world coordinates.
+  above ``min_opacity`` becomes the point at the rendered depth along the marched ray, mapped
+  back to world coordinates by the scene's ray space (``ray_space.to_world``, docs/design.md §6).
 
 Files are binary PLY written with ``plyfile`` (vertex x, y, z, red, green, blue; faces as
 ``vertex_indices``). Both libraries are the optional extra ``pip install 'warpnerf[export]'``.
@@ -79,9 +79,9 @@ def vertex_colors(trainer, verts: np.ndarray, normals: np.ndarray, chunk: int = 
 def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD):
     """Marching cubes on the density. Returns vertices (V, 3) float32 in scene units, faces
     (F, 3) int32 (counter-clockwise seen from outside) and colours (V, 3) uint8."""
-    if trainer.scene.ndc:
-        raise ExportError("mesh export needs an object-centric scene (the field of a forward-facing scene lives in "
-                          "NDC space); use --what points")
+    if not trainer.scene.ray_space.box_is_world:
+        raise ExportError(f"mesh export needs a field in world coordinates (this scene's field lives in its "
+                          f"{trainer.scene.ray_space.kind} ray space); use --what points")
     try:
         from skimage import measure
     except ImportError:
@@ -130,15 +130,11 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
         keep = (img["opacity"].reshape(-1) > min_opacity)
         o, d = pixel_rays(c2w[None].expand(u.shape[0], 3, 4), u, v, focal, cx, cy)
         t = img["depth"].reshape(-1)
-        if trainer.scene.ndc:
-            from .data.llff import ndc_rays
-
-            on, dn = ndc_rays(o, d, views.focal, views.width, views.height, near=1.0)
-            x = world_from_ndc(on + t[:, None] * torch.nn.functional.normalize(dn, dim=-1), views.focal, views.width,
-                               views.height)
-            keep &= torch.isfinite(x).all(-1)
-        else:
-            x = o + t[:, None] * d
+        # depth is measured along the rays the marcher saw: find the point there, then go back to the world
+        space = trainer.scene.ray_space
+        om, dm = space.apply(o, d)
+        x = space.to_world(om + t[:, None] * dm)
+        keep &= torch.isfinite(x).all(-1)  # points at infinity (the far end of an NDC ray)
         pts.append(x[keep].cpu())
         cols.append(img["rgb"].reshape(-1, 3)[keep].clamp(0, 1).cpu())
     points, colors = torch.cat(pts), torch.cat(cols)
@@ -146,13 +142,6 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
         pick = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(seed))[:max_points]
         points, colors = points[pick], colors[pick]
     return points.numpy().astype(np.float32), (colors.numpy() * 255 + 0.5).astype(np.uint8)
-
-
-def world_from_ndc(x: torch.Tensor, focal: float, width: int, height: int, near: float = 1.0) -> torch.Tensor:
-    """Invert LLFF's NDC map (see :mod:`warpnerf.data.llff`): (..., 3) NDC points -> world points.
-    z' = 1 + 2 near / z  =>  z = 2 near / (z' - 1); x' = -f/(W/2) x / z  =>  x = -x' z W / (2 f)."""
-    z = 2.0 * near / (x[..., 2] - 1.0)
-    return torch.stack([-x[..., 0] * z * width / (2 * focal), -x[..., 1] * z * height / (2 * focal), z], -1)
 
 
 def write_ply(path: str, verts: np.ndarray, colors: np.ndarray, faces: Optional[np.ndarray] = None) -> None:

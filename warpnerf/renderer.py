@@ -3,6 +3,7 @@
 Data flow of one batch (DESIGN §2):
 
     c2w, pixels --pixel_rays--> o, d           torch, differentiable w.r.t. c2w (pose task)
+    o, d --ray_space.apply--> o, d              torch: the scene's ray space (DESIGN §6)
     o, d --march_rays--> packed (ray, t0, t1)   Warp, occupancy-grid skipping, no gradient
     x = o[ray] + t_mid d[ray]                   torch, differentiable w.r.t. o and d
     field(x, d, level weights) -> sigma, rgb    Warp hash grid + torch MLPs
@@ -13,10 +14,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
 
 import torch
 
+from .data.rayspace import RaySpace
 from .occupancy import OccupancyGrid
 from .ops.composite import composite_rays
 from .ops.raymarch import march_rays_within_budget
@@ -61,23 +63,22 @@ class Renderer:
         field: module with ``geometry(x, level_weights) -> (sigma, features)`` and
             ``color(features, dirs) -> rgb``.
         occupancy: the grid whose bitfield the marcher skips empty space with.
-        near, far: ray clip distances; step: marching step (world units).
+        ray_space: the scene's :class:`~warpnerf.data.rayspace.RaySpace`: world rays are mapped
+            by ``ray_space.apply`` and marched from its ``near`` to its ``far`` (DESIGN §6); the
+            field sees positions in that space, while the color MLP still gets the world directions.
+        step: marching step (units of the ray space).
         background: 3 floats composited behind every ray.
-        ray_transform: optional map (o, d) -> (o', d') applied before marching (e.g. NDC for
-            forward-facing scenes); the field then sees the transformed positions, while the color
-            MLP still gets the original world directions.
     """
 
-    def __init__(self, field, occupancy: OccupancyGrid, near: float, far: float, step: float,
-                 background=(1.0, 1.0, 1.0), max_samples_per_ray: int = 1024,
-                 ray_transform: Optional[Callable] = None, color_weight_eps: float = 1e-4,
+    def __init__(self, field, occupancy: OccupancyGrid, ray_space: RaySpace, step: float,
+                 background=(1.0, 1.0, 1.0), max_samples_per_ray: int = 1024, color_weight_eps: float = 1e-4,
                  sample_budget: int = 1 << 18):
         self.field = field
         self.occupancy = occupancy
-        self.near, self.far, self.step = float(near), float(far), float(step)
+        self.ray_space = ray_space
+        self.near, self.far, self.step = float(ray_space.near), float(ray_space.far), float(step)
         self.background = tuple(float(b) for b in background)
         self.max_samples_per_ray = int(max_samples_per_ray)
-        self.ray_transform = ray_transform
         self.color_weight_eps = float(color_weight_eps)
         # packed samples per render_rays call at most (memory bound); one ray must always fit
         self.sample_budget = max(int(sample_budget), self.max_samples_per_ray)
@@ -91,16 +92,11 @@ class Renderer:
         memory stays bounded however empty or full the occupancy grid is. ``background``: optional
         (R, 3) per-ray colours replacing the renderer's constant one (random backgrounds)."""
         view_dirs = rays_d
-        o, d = rays_o, rays_d
-        near = self.near
-        if self.ray_transform is not None:
-            o, d = self.ray_transform(o, d)
-            d = torch.nn.functional.normalize(d, dim=-1)
-            near = 0.0
+        o, d = self.ray_space.apply(rays_o, rays_d)
         with torch.no_grad():
             packed, n_marched = march_rays_within_budget(
                 o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
-                self.occupancy.resolution, near, self.far, self.step, self.max_samples_per_ray, jitter,
+                self.occupancy.resolution, self.near, self.far, self.step, self.max_samples_per_ray, jitter,
                 max_total_samples=self.sample_budget)
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5

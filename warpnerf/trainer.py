@@ -6,7 +6,6 @@ helpers live in :mod:`warpnerf.evaluate`.
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Callable, Optional
 
@@ -55,16 +54,10 @@ class Trainer:
                                density_shift=cfg.cp_density_shift if mtrf else 0.0).to(self.device)
         self.occupancy = OccupancyGrid(scene.aabb, cfg.occ_resolution, self.device, warmup_steps=cfg.occ_warmup,
                                        update_every=cfg.occ_update_every)
-        ray_transform = None
-        if scene.ndc:
-            from .data.llff import ndc_rays
-
-            f, w, h = views.focal, views.width, views.height
-            ray_transform = lambda o, d: ndc_rays(o, d, f, w, h, near=1.0)  # noqa: E731
-        far = math.inf if scene.ndc else scene.far
-        self.renderer = Renderer(self.field, self.occupancy, scene.near, far, cfg.render_step or default_step(scene.aabb, cfg.march_steps),
-                                 scene.background, cfg.max_samples_per_ray, ray_transform,
-                                 sample_budget=cfg.sample_budget)
+        # the scene's ray space (ray map, box, marching bounds: DESIGN §6) is all the renderer needs
+        self.renderer = Renderer(self.field, self.occupancy, scene.ray_space,
+                                 cfg.render_step or default_step(scene.aabb, cfg.march_steps),
+                                 scene.background, cfg.max_samples_per_ray, sample_budget=cfg.sample_budget)
         self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp, cfg.cp_lr if mtrf else None), cfg.lr)
         self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
         self.n_rays = cfg.batch_rays

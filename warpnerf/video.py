@@ -10,10 +10,11 @@ Paths:
 
 * ``orbit``: one turn about the scene's up axis (the mean of the training cameras' up vectors)
   around the point the training cameras look at, at their mean distance and elevation;
-* ``spiral``: forward-facing (LLFF/NDC) scenes get LLFF's spiral about the average camera
-  (two turns, radii from the 90th percentile of camera offsets, focus depth from the LLFF
-  recipe); object-centric scenes get MipNeRF-360's ellipse-style path: one turn about the up
-  axis whose elevation swings between the training cameras' low and high elevations;
+* ``spiral``: forward-facing scenes (``scene.ray_space.forward_facing``: LLFF) get LLFF's spiral
+  about the average camera (two turns, radii from the 90th percentile of camera offsets, focus
+  depth from the LLFF recipe); object-centric scenes get MipNeRF-360's ellipse-style path: one
+  turn about the up axis whose elevation swings between the training cameras' low and high
+  elevations;
 * ``test``: the test cameras themselves (each at most once: no repeated frames);
 * ``FILE.json``: a nerfstudio ``camera_path.json`` (``camera_path[i].camera_to_world`` as 16
   row-major floats, vertical ``fov`` in degrees, ``render_width``/``render_height``), read in the
@@ -211,14 +212,14 @@ def test_cameras(trainer) -> torch.Tensor:
     return c2w.detach().cpu().float()
 
 
-# LLFF spiral focus depth for NDC scenes: 1 / ((1 - 0.75) / close + 0.75 / inf) with LLFF's
+# LLFF spiral focus depth (forward-facing scenes): 1 / ((1 - 0.75) / close + 0.75 / inf) with LLFF's
 # close = 0.9 * nearest bound = 0.9 / bd_factor = 1.2 and inf -> infinity (we do not keep the far bound)
 LLFF_FOCUS_DEPTH = 1.2 / 0.25
 
 
 def default_path(scene) -> str:
     """The run video's path: a spiral for forward-facing scenes, an orbit otherwise."""
-    return "spiral" if scene.ndc else "orbit"
+    return "spiral" if scene.ray_space.forward_facing else "orbit"
 
 
 def make_path(trainer, kind: str, frames: int, scale: float = 1.0) -> CameraPath:
@@ -235,11 +236,11 @@ def make_path(trainer, kind: str, frames: int, scale: float = 1.0) -> CameraPath
         raise PathError(f"--frames must be >= 1, got {frames}")
     train = training_cameras(trainer)
     if kind == "orbit":
-        if trainer.scene.ndc:
+        if trainer.scene.ray_space.forward_facing:
             raise PathError("orbit needs an object-centric scene; forward-facing (LLFF) scenes: use --path spiral")
         return CameraPath(orbit_path(train, frames), **intr)
     if kind == "spiral":
-        if trainer.scene.ndc:
+        if trainer.scene.ray_space.forward_facing:
             return CameraPath(llff_spiral_path(train, frames, LLFF_FOCUS_DEPTH), **intr)
         return CameraPath(orbit_path(train, frames, elevation_swing=True), **intr)
     if kind == "test":

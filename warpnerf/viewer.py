@@ -111,7 +111,7 @@ class RunViewer:
         """(3,) the point the training cameras look at (forward-facing scenes: 1 unit ahead of the first test camera)."""
         from .video import look_target, training_cameras
 
-        if self.trainer.scene.ndc:
+        if self.trainer.scene.ray_space.forward_facing:
             c = self.initial_camera()
             return (c[:, 3] - c[:, 2]).double().numpy()
         return look_target(training_cameras(self.trainer)).numpy()

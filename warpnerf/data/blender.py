@@ -25,6 +25,7 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_frames, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
+from warpnerf.data.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -77,11 +78,8 @@ def load_blender(
         train=views["train"],
         test=views["test"],
         val=views.get("val"),
-        aabb=BLENDER_AABB,
-        near=BLENDER_NEAR,
-        far=BLENDER_FAR,
+        ray_space=RaySpace.euclidean(BLENDER_AABB, BLENDER_NEAR, BLENDER_FAR),
         background=bg,
-        ndc=False,
         root=os.path.abspath(root),
     )
 

@@ -17,6 +17,7 @@ from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_p
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.images import area_downscale, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
+from warpnerf.data.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 
 
@@ -161,11 +162,8 @@ def build_scene(
         train=views(splits["train"]),
         test=views(splits["test"]),
         val=views(splits["val"]) if splits.get("val") else None,
-        aabb=aabb,
-        near=near,
-        far=far,
+        ray_space=RaySpace.euclidean(aabb, near, far),
         background=tuple(float(b) for b in bg),
-        ndc=False,
         root=os.path.abspath(root),
     )
     scene.normalization = norm  # not a dataclass field: only capture scenes have one

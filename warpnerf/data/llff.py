@@ -1,4 +1,4 @@
-"""Loader for forward-facing LLFF scenes (``poses_bounds.npy`` + ``images_<factor>/``), and NDC rays.
+"""Loader for forward-facing LLFF scenes (``poses_bounds.npy`` + ``images_<factor>/``).
 
 ``poses_bounds.npy`` is (N, 17) float: per image a 3x5 matrix flattened row-major, then the
 near/far depth bounds of its content. The 3x5 matrix is [R | t | hwf]: rotation columns in
@@ -13,17 +13,10 @@ the full-resolution image. Processing follows the original NeRF code:
    and up axes), so the cameras look down -z around the origin;
 5. hold out every ``holdout``-th image (i % holdout == 0) as the test split.
 
-NDC parametrisation (``scene.ndc`` is True). A camera-space-like ray of the recentred world
-(o, d), with the scene in front along -z, is first moved to the near plane z = -near, then mapped
-by the perspective projection of a camera with the given focal/width/height at the origin:
-
-    o' = ( -f/(W/2) * o_x/o_z,   -f/(H/2) * o_y/o_z,   1 + 2 near / o_z )
-    d' = ( -f/(W/2) * (d_x/d_z - o_x/o_z),  -f/(H/2) * (d_y/d_z - o_y/o_z),  -2 near / o_z )
-
-so points o' + t d' with t in [0, 1] run from the near plane (z' = -1) to infinity (z' = 1),
-and x', y' in [-1, 1] cover the view frustum of the average camera. Hence the scene's
-``near``/``far`` are 0/1 (in t) and its box is [-1, 1]^3. Sampling uniformly in t is sampling
-uniformly in inverse depth, which suits forward-facing scenes with a far background.
+The scene's ray space is LLFF's NDC (:meth:`RaySpace.ndc <warpnerf.data.rayspace.RaySpace.ndc>`,
+formula in :mod:`warpnerf.data.rayspace`, docs/design.md §6): world rays of the recentred scene are
+projected by the views' pinhole camera at the origin, so the box is [-1, 1]^3 and uniform steps
+are uniform in inverse depth, which suits forward-facing scenes with a far background.
 """
 
 from __future__ import annotations
@@ -35,10 +28,10 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
+from warpnerf.data.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 
 LLFF_BD_FACTOR = 0.75
-NDC_AABB = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
 
 
 def load_llff(
@@ -50,7 +43,7 @@ def load_llff(
     recenter: bool = True,
     name: str | None = None,
 ) -> Scene:
-    """Load an LLFF scene folder into a :class:`Scene` (source "dataset", kind "llff", ndc True).
+    """Load an LLFF scene folder into a :class:`Scene` (source "dataset", kind "llff", NDC ray space).
 
     Args:
         root: folder holding ``poses_bounds.npy`` and ``images_<factor>/`` (``images/`` for factor 1).
@@ -63,7 +56,7 @@ def load_llff(
         name: scene name (default: the folder name).
 
     Returns a scene whose ``train``/``test`` views hold (N, H, W, 3) images, OpenGL c2w, and
-    ``val`` None; ``near``/``far`` = 0/1 and ``aabb`` = [-1, 1]^3 are in NDC (see module doc).
+    ``val`` None, and an NDC ray space for the views' intrinsics (box [-1, 1]^3; see module doc).
 
     Raises:
         DatasetError: missing folder/file, wrong array shape, image count or size that does
@@ -148,13 +141,11 @@ def load_llff(
         train=views(train_ids),
         test=views(test_ids),
         val=None,
-        aabb=NDC_AABB,
-        near=0.0,
-        far=1.0,
+        # the NDC near plane at world depth 1: content starts at 1 / bd_factor behind it
+        ray_space=RaySpace.ndc(focal, w, h, ndc_near=1.0),
         # Real photos have no background: whatever transmittance is left at infinity is black,
         # as in the original NeRF LLFF setup.
         background=(0.0, 0.0, 0.0),
-        ndc=True,
         root=os.path.abspath(root),
     )
 
@@ -198,34 +189,3 @@ def recenter_poses(c2w: np.ndarray) -> np.ndarray:
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
-
-def ndc_rays(
-    rays_o: torch.Tensor, rays_d: torch.Tensor, focal: float, width: int, height: int, near: float = 1.0
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Map world rays of a recentred forward-facing scene to NDC (see the module docstring).
-
-    Args:
-        rays_o: (..., 3) origins, world units (recentred frame, scene along -z).
-        rays_d: (..., 3) directions (need not be unit; must have d_z != 0, i.e. not parallel
-            to the image plane).
-        focal, width, height: intrinsics of the views, pixels.
-        near: depth of the NDC near plane (1.0 with the default bd_factor).
-
-    Returns (o', d'), each (..., 3): the NDC ray is o' + t d' for t in [0, 1] (near plane ->
-    infinity). Plain torch ops: differentiable w.r.t. both inputs (poses in the pose task).
-
-    Example::
-
-        o, d = ndc_rays(torch.zeros(1, 3), torch.tensor([[0.0, 0.0, -1.0]]), 400.0, 504, 378)
-        # o = [[0, 0, -1]], d = [[0, 0, 2]]
-    """
-    # Move origins to the near plane so that t = 0 is z = -near for every ray.
-    t = -(near + rays_o[..., 2]) / rays_d[..., 2]
-    rays_o = rays_o + t[..., None] * rays_d
-    ox, oy, oz = rays_o.unbind(-1)
-    dx, dy, dz = rays_d.unbind(-1)
-    sx = -2.0 * focal / width
-    sy = -2.0 * focal / height
-    o_ndc = torch.stack([sx * ox / oz, sy * oy / oz, 1.0 + 2.0 * near / oz], -1)
-    d_ndc = torch.stack([sx * (dx / dz - ox / oz), sy * (dy / dz - oy / oz), -2.0 * near / oz], -1)
-    return o_ndc, d_ndc

@@ -6,7 +6,9 @@ Conventions (shared by all loaders and the renderer):
   x right, y up, the camera looks down its -z axis;
 * images are (N, H, W, 3) float32 in [0, 1], already composited on the background;
 * ``focal``, ``cx``, ``cy`` are in pixels of the loaded (possibly downscaled) images;
-* a pixel (u, v) (column, row) has its centre at (u + 0.5, v + 0.5).
+* a pixel (u, v) (column, row) has its centre at (u + 0.5, v + 0.5);
+* ``ray_space`` (:mod:`warpnerf.data.rayspace`) says how world rays become the rays the marcher
+  sees, and holds the scene box and marching bounds in that space (docs/design.md §6).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import torch
+
+from warpnerf.data.rayspace import RaySpace
 
 
 @dataclass
@@ -70,9 +74,19 @@ class Scene:
     train: Views
     test: Views
     val: Optional[Views] = None
-    aabb: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
-    near: float = 2.0
-    far: float = 6.0
+    ray_space: RaySpace = RaySpace()  # ray map, box and marching bounds (default: Blender's, world units)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    ndc: bool = False  # forward-facing scenes: rays are mapped to NDC before marching
     root: str = ""  # folder it was read from
+
+    # The box and bounds are the ray space's: one place, so they cannot disagree with it.
+    @property
+    def aabb(self) -> tuple[float, float, float, float, float, float]:
+        return self.ray_space.aabb
+
+    @property
+    def near(self) -> float:
+        return self.ray_space.near
+
+    @property
+    def far(self) -> float:
+        return self.ray_space.far
