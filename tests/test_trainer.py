@@ -101,6 +101,37 @@ def test_training_is_deterministic_for_a_seed():
     assert losses[0] == losses[1]
 
 
+def backward_node_names(t: torch.Tensor) -> set[str]:
+    """Names of every autograd node ``t`` was computed through."""
+    names, seen, stack = set(), set(), [t.grad_fn]
+    while stack:
+        fn = stack.pop()
+        if fn is None or fn in seen:
+            continue
+        seen.add(fn)
+        names.add(type(fn).__name__)
+        stack.extend(f for f, _ in fn.next_functions)
+    return names
+
+
+def test_pose_gradient_path_has_no_cpu_index_backward():
+    """``t[idx]``'s backward (index_put_ with accumulate) adds repeated rows from several threads in
+    no fixed order on CPU: the gradient of a camera's pose changed in its last bits from run to run,
+    so a resumed run could not match an uninterrupted one (issue 11). Rays and samples are gathered
+    with index_select instead."""
+    assert "IndexBackward0" in backward_node_names(torch.zeros(2, requires_grad=True)[torch.tensor([0, 0])])
+    from warpnerf.renderer import pixel_rays
+
+    t = make_trainer("pose", iters=10)
+    idx, u, v, _, _ = t.sample_pixels(t.n_rays)
+    o, d = pixel_rays(t.task.camera_poses(t, idx), u, v, t.views.focal, t.views.cx, t.views.cy)
+    out = t.renderer.render_rays(o.contiguous(), d.contiguous(), t.level_weights(0),
+                                 torch.rand(o.shape[0], generator=t.gen))
+    assert out.n_samples > 0
+    names = backward_node_names(out.rgb)
+    assert "IndexSelectBackward0" in names and "IndexBackward0" not in names
+
+
 def test_g2fr_masks_levels_early():
     t = make_trainer(iters=100, g2fr=True, g2fr_beta=0.5)
     assert t.schedule.active_levels(0) == 1

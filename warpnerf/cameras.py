@@ -286,7 +286,13 @@ class PoseCorrection(torch.nn.Module):
         is (N, 3, 4)). Differentiable w.r.t. ``delta`` (and c2w_noisy). At initialisation the
         output equals the input exactly.
         """
-        d = self.delta if idx is None else self.delta[torch.as_tensor(idx, device=self.delta.device)]
+        if idx is None:
+            d = self.delta
+        else:
+            idx = torch.as_tensor(idx, device=self.delta.device)
+            # index_select, not delta[idx]: its backward sums a camera's rays in a fixed order on
+            # CPU (see warpnerf.renderer.gather_rows), so pose training is bit-reproducible
+            d = self.delta.index_select(0, idx.reshape(-1)).reshape(*idx.shape, self.delta.shape[1])
         E = se3_exp(d.to(c2w_noisy.dtype))
         return _apply_twist(c2w_noisy, E, self.frame)
 

@@ -7,7 +7,6 @@ stats)`` after every step. It
   views at half resolution and appends their mean PSNR to ``trainer.history["heldout"]`` as
   (step, dB) pairs, so ``history.json`` and ``training.png`` get the held-out curve;
 * every ``cfg.log_every`` steps appends the encoding's L_Ψ to ``trainer.history["lipschitz"]``;
-* every ``cfg.checkpoint_every`` steps (if > 0) saves ``checkpoint.pt``, which ``warpnerf view`` follows;
 * with ``cfg.log == "tensorboard"`` writes scalars every ``cfg.log_every`` steps to
   ``<run>/tb`` (``pip install 'warpnerf[log]'``, view with ``tensorboard --logdir runs``).
 
@@ -85,8 +84,6 @@ class Monitor:
         trainer.history.setdefault("lipschitz", [])  # (step, L_Psi) pairs
         self._t_last, self._step_last = time.perf_counter(), -1
         self.heldout_seconds = 0.0
-        self.checkpoint_every = int(cfg.checkpoint_every)
-        self.checkpoint_path = os.path.join(cfg.run_dir(), "checkpoint.pt")
 
     def _heldout_views(self, trainer):
         """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics)."""
@@ -137,18 +134,9 @@ class Monitor:
             if hist and hist.get("rot_err_deg"):
                 values["pose/rot_err_deg"] = hist["rot_err_deg"][-1]
                 values["pose/trans_err_x100"] = hist["trans_err_x100"][-1]
-        if self.checkpoint_every > 0 and (step + 1) % self.checkpoint_every == 0 and not last:
-            self.save_checkpoint(trainer, step)
         if self.writer is not None:
             for tag, v in values.items():
                 self.writer.add_scalar(tag, float(v), step)
-
-    def save_checkpoint(self, trainer, step: int) -> None:
-        """Write ``checkpoint.pt`` atomically (temp file + rename), with the step for the level weights."""
-        os.makedirs(os.path.dirname(self.checkpoint_path) or ".", exist_ok=True)
-        tmp = self.checkpoint_path + ".tmp"
-        torch.save({**trainer.state_dict(), "step": step}, tmp)
-        os.replace(tmp, self.checkpoint_path)
 
     def close(self) -> None:
         if self.writer is not None:

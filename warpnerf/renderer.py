@@ -24,6 +24,17 @@ from .ops.composite import composite_rays
 from .ops.raymarch import march_rays_within_budget
 
 
+def gather_rows(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``t[idx]`` for a 1-D index, with a deterministic backward.
+
+    The backward of ``t[idx]`` is ``index_put_(accumulate=True)``, which on CPU adds the rows of
+    repeated indices from several threads in no fixed order: the gradient of a ray (or camera)
+    with many samples changed in its last bits from run to run. ``index_select``'s backward
+    (``index_add_``) sums them in index order, so training is bit-reproducible (and resumable).
+    """
+    return t.index_select(0, idx)
+
+
 def pixel_rays(c2w: torch.Tensor, u: torch.Tensor, v: torch.Tensor, focal: float, cx: float, cy: float):
     """World rays through pixel positions.
 
@@ -100,7 +111,7 @@ class Renderer:
                 max_total_samples=self.sample_budget)
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
-        x = o[ray] + t_mid[:, None] * d[ray]
+        x = gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray)
         sigma, geo = self.field.geometry(x, level_weights)
         rgb = self._sample_colors(sigma, geo, view_dirs, ray, packed)
         bg = self.background if background is None else background
@@ -110,14 +121,15 @@ class Renderer:
 
     def _sample_colors(self, sigma, geo, view_dirs, ray, packed) -> torch.Tensor:
         if self.color_weight_eps <= 0 or sigma.shape[0] == 0:
-            return self.field.color(geo, view_dirs[ray])
+            return self.field.color(geo, gather_rows(view_dirs, ray))
         with torch.no_grad():
             dummy = torch.zeros(sigma.shape[0], 3, device=sigma.device)
             weights = composite_rays(sigma.detach(), dummy, packed.t_starts, packed.t_ends, packed.ray_offsets,
                                      packed.ray_counts, self.background, return_weights=True)[3]
             keep = torch.nonzero(weights > self.color_weight_eps).squeeze(1)
         rgb = torch.zeros(sigma.shape[0], 3, device=sigma.device, dtype=geo.dtype)
-        return rgb.index_put((keep,), self.field.color(geo[keep], view_dirs[ray[keep]]))
+        colors = self.field.color(gather_rows(geo, keep), gather_rows(view_dirs, ray[keep]))
+        return rgb.index_put((keep,), colors)
 
     @torch.no_grad()
     def render_image(self, c2w: torch.Tensor, height: int, width: int, focal: float, cx: float, cy: float,

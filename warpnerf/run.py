@@ -180,9 +180,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     """Train and evaluate one configuration; returns the metrics written to metrics.json.
 
     Everything the user can get wrong (config values, device, run folder, data) is checked before
-    the first file is written. With ``cfg.save_every`` a checkpoint is saved atomically every that
-    many steps; SIGINT/SIGTERM save one at the next step boundary and raise TrainingInterrupted.
-    ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
+    the first file is written. With ``cfg.save_every`` (and ``cfg.checkpoint_every``) a checkpoint is
+    saved atomically every that many steps; SIGINT/SIGTERM save one at the next step boundary and
+    raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
     import shutil
     import signal
 
@@ -234,9 +234,14 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     def save() -> None:
         save_checkpoint(ckpt_path, {**trainer.state_dict(), "config_hash": config_hash(cfg)})
 
+    def checkpoint_due(n_done: int) -> bool:
+        # save_every: for --resume; checkpoint_every: for 'warpnerf view' to follow the run
+        every = [n for n in (cfg.save_every, cfg.checkpoint_every) if n > 0]
+        return n_done < cfg.iters and any(n_done % n == 0 for n in every)
+
     def on_step_end(n_done: int) -> None:
         _fault(f"step:{n_done}")
-        if stop or (cfg.save_every and n_done % cfg.save_every == 0 and n_done < cfg.iters):
+        if stop or checkpoint_due(n_done):
             save()
         if stop:
             raise TrainingInterrupted(f"interrupted at step {n_done}; checkpoint saved to {ckpt_path}; "

@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from . import metrics as M
@@ -40,6 +41,7 @@ class Trainer:
         self.cfg, self.scene, self.task = cfg, scene, task
         self.device = torch.device("cpu" if device == "cpu" else device)
         torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)  # unused by training, but checkpoints carry its state: keep it reproducible
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
         views = task.train_views(scene)
         self.views = views
@@ -67,6 +69,7 @@ class Trainer:
         self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": []}
         self.train_seconds = 0.0
         self.step = 0  # the next step to run (a resumed run starts past 0)
+        self.loss_ratio: Optional[float] = None  # EMA of loss / background-only loss (check_learning)
         self.callbacks: list = []  # called as cb(trainer, step, stats) after every step (warpnerf.monitor)
         task.setup(self)
 
@@ -158,13 +161,12 @@ class Trainer:
         bar = tqdm(range(self.step, cfg.iters), desc=f"train {self.scene.name}/{cfg.task}", disable=not progress,
                    dynamic_ncols=True, mininterval=0.5, initial=self.step, total=cfg.iters)
         t0 = time.perf_counter()
-        ratio = None
         for step in bar:
             stats = self.train_step(step)
             r = stats["loss"] / max(stats["empty_loss"], 1e-12)
-            ratio = r if ratio is None else 0.9 * ratio + 0.1 * r
+            self.loss_ratio = r if self.loss_ratio is None else 0.9 * self.loss_ratio + 0.1 * r
             if step % cfg.log_every == 0:
-                self.check_learning(step, ratio)
+                self.check_learning(step, self.loss_ratio)
             extra = self.task.after_step(self, step)
             if step % cfg.log_every == 0 or step == cfg.iters - 1:
                 psnr = M.psnr_from_mse(stats["loss"])
@@ -189,13 +191,14 @@ class Trainer:
 
     def state_dict(self) -> dict:
         """Everything needed to continue training bit-identically (and to evaluate): step, field,
-        Adam state, occupancy grid, RNG streams, adaptive ray count, history, the task's state."""
+        Adam state, occupancy grid, RNG streams, adaptive ray count, loss-ratio EMA, history, the
+        task's state."""
         from .checkpoint import rng_state
 
         return {"step": self.step, "field": self.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
-                "rng": rng_state(self.gen), "n_rays": self.n_rays, "history": self.history,
-                "train_seconds": self.train_seconds, "task": self.task.state_dict()}
+                "rng": rng_state(self.gen), "n_rays": self.n_rays, "loss_ratio": self.loss_ratio,
+                "history": self.history, "train_seconds": self.train_seconds, "task": self.task.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         from .checkpoint import set_rng_state
@@ -206,6 +209,7 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         set_rng_state(state["rng"], self.gen)
         self.step, self.n_rays = int(state["step"]), int(state["n_rays"])
+        self.loss_ratio = state.get("loss_ratio")
         self.history = {k: list(v) for k, v in state["history"].items()}
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.task.load_state_dict(state["task"])
