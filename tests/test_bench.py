@@ -23,3 +23,16 @@ def test_encoding_bench_honours_repeats_for_both_arms(monkeypatch):
     assert res["repeats"] == res["torch_repeats"] == 3
     assert seen and set(seen) == {3}  # Warp and torch twin timed the same number of times
     assert res["warp_fwdbwd_pts_s"] > 0 and res["ratio_fwdbwd"] > 0
+
+
+def test_twin_swap_replaces_the_ops_the_renderer_calls():
+    """bench step's torch arm must swap the names the renderer really uses (it broke silently once,
+    when the renderer moved to march_rays_within_budget)."""
+    from warpnerf import encoders, renderer
+
+    names = [(encoders, "hashgrid_encode"), (renderer, "march_rays_within_budget"), (renderer, "composite_rays")]
+    before = [getattr(m, n) for m, n in names]
+    with bench._twin_ops():
+        during = [getattr(m, n) for m, n in names]
+    assert all(a is not b for a, b in zip(before, during))
+    assert [getattr(m, n) for m, n in names] == before
