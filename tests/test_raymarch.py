@@ -166,6 +166,7 @@ def test_sample_budget_keeps_a_prefix_of_whole_rays():
     """march_rays_within_budget: the longest prefix of rays that fits keeps exactly the samples
     march_rays gives it; later rays get none; without a cap it is march_rays."""
     from warpnerf.ops.raymarch import march_rays_within_budget
+    from warpnerf.ops.reference import raymarch as twin_mod
 
     g = torch.Generator().manual_seed(0)
     o = torch.rand(64, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -3.0])
@@ -181,6 +182,10 @@ def test_sample_budget_keeps_a_prefix_of_whole_rays():
     assert cut.t_starts.shape[0] == int(csum[n - 1]) <= budget
     assert torch.equal(cut.ray_counts[:n], full.ray_counts[:n]) and int(cut.ray_counts[n:].sum()) == 0
     assert torch.equal(cut.t_starts, full.t_starts[: cut.t_starts.shape[0]])
+    for cap in (None, budget):  # the torch twin (bench step's torch arm) gives the same packing
+        twin, n_twin = twin_mod.march_rays_within_budget(*args, max_total_samples=cap)
+        warp, n_warp = march_rays_within_budget(*args, max_total_samples=cap)
+        assert n_twin == n_warp and all(torch.equal(a, b) for a, b in zip(twin, warp))
 
 
 def test_non_finite_rays_return_quickly_with_no_samples():

@@ -168,26 +168,13 @@ def _twin_ops():
     from . import encoders, renderer
     from .ops.reference import composite as twin_composite
     from .ops.reference import hashgrid as twin_hashgrid
-    from .ops.raymarch import rays_within_budget
     from .ops.reference import raymarch as twin_raymarch
-
-    def twin_march_within_budget(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
-                                 max_samples_per_ray=1024, jitter=None, max_total_samples=None):
-        # the renderer marches through the budgeted entry point: same contract, twin inside
-        grid = (aabb, occ_bitfield, occ_resolution, near, far, step_size, max_samples_per_ray)
-        packed = twin_raymarch.march_rays(rays_o, rays_d, *grid, jitter)
-        keep = rays_o.shape[0]
-        if max_total_samples is not None and int(packed.ray_counts.sum()) > max_total_samples:
-            keep = rays_within_budget(packed.ray_counts, int(max_total_samples))
-            packed = twin_raymarch.march_rays(rays_o[:keep], rays_d[:keep], *grid,
-                                              None if jitter is None else jitter[:keep])
-        return packed, keep
 
     @contextlib.contextmanager
     def swap():
         saved = (encoders.hashgrid_encode, renderer.march_rays_within_budget, renderer.composite_rays)
         encoders.hashgrid_encode = twin_hashgrid.hashgrid_encode
-        renderer.march_rays_within_budget = twin_march_within_budget
+        renderer.march_rays_within_budget = twin_raymarch.march_rays_within_budget
         renderer.composite_rays = twin_composite.composite_rays
         try:
             yield

@@ -1,4 +1,5 @@
-"""Pure-torch twin of :func:`warpnerf.ops.raymarch.march_rays` (same name, signature, result).
+"""Pure-torch twins of :func:`warpnerf.ops.raymarch.march_rays` and ``march_rays_within_budget``
+(same names, signatures, results).
 
 Vectorised over a dense (rays x candidate steps) table, so memory grows with the longest ray;
 meant for tests and the kernel-vs-torch benchmark, not for training. Every float32 operation
@@ -12,9 +13,9 @@ from typing import Optional, Sequence
 import torch
 
 from ..launch import aabb_floats
-from ..raymarch import MAX_STEPS_PER_RAY, PackedSamples
+from ..raymarch import MAX_STEPS_PER_RAY, PackedSamples, rays_within_budget
 
-__all__ = ["march_rays"]
+__all__ = ["march_rays", "march_rays_within_budget"]
 
 
 def march_rays(
@@ -76,3 +77,33 @@ def march_rays(
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
     ray_ids, step_ids = keep.nonzero(as_tuple=True)
     return PackedSamples(ray_ids.int(), ts[ray_ids, step_ids], te[ray_ids, step_ids], offsets, counts)
+
+
+def march_rays_within_budget(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb: Sequence[float],
+    occ_bitfield: Optional[torch.Tensor],
+    occ_resolution: int,
+    near: float,
+    far: float,
+    step_size: float,
+    max_samples_per_ray: int = 1024,
+    jitter: Optional[torch.Tensor] = None,
+    max_total_samples: Optional[int] = None,
+) -> tuple[PackedSamples, int]:
+    """See :func:`warpnerf.ops.raymarch.march_rays_within_budget`; results are identical."""
+    packed = march_rays(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                        max_samples_per_ray, jitter)
+    if max_total_samples is None:
+        return packed, rays_o.shape[0]
+    if int(max_total_samples) < 1:
+        raise ValueError(f"march_rays: max_total_samples must be >= 1, got {max_total_samples}")
+    # samples are packed in ray order: the kept prefix of rays owns a prefix of the samples
+    keep = rays_within_budget(packed.ray_counts, int(max_total_samples))
+    counts = packed.ray_counts.clone()
+    counts[keep:] = 0
+    total = int(counts.sum(dtype=torch.int64))
+    offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
+    return PackedSamples(packed.ray_indices[:total], packed.t_starts[:total], packed.t_ends[:total], offsets,
+                         counts), keep
