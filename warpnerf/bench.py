@@ -3,10 +3,15 @@
 Each benchmark times the Warp op and its pure-torch twin in the same process, both the same
 way: median of ``repeats`` timed runs after ``warmup`` untimed ones (compilation, allocator and
 cache warm-up), with inputs and cotangents allocated once outside the timed runs.
+
+Next to the op timings they print a roofline measured on the same machine in the same process:
+the random-gather rate (``kernels/roofline.py``) for the grid encodings, the float32 GEMM rate
+for the field's MLPs, and the fraction of each that the op reaches.
 """
 
 from __future__ import annotations
 
+import functools
 import statistics
 import time
 from typing import Callable
@@ -46,9 +51,129 @@ def ray_like_points(n: int, samples_per_ray: int = 128, generator: torch.Generat
     return pts.reshape(-1, 3)[:n].clamp(0, 1).contiguous()
 
 
+def _sync(device: torch.device) -> None:
+    """Wait for queued CUDA work, so a timed run ends when its work does (no-op on CPU)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+# --- roofline: what this machine can do, measured, next to what the ops reach -------------------
+
+# gather-probe points at most: 2^20 x 8 int32 row ids are 32 MiB, ample to amortise the launches
+_GATHER_POINTS_MAX = 1 << 20
+# (samples, in, out) of the GEMM peak: a 64-wide layer of the field's MLPs on a 64k-sample batch
+GEMM_SHAPE = (65536, 64, 64)
+
+
+@functools.lru_cache(maxsize=None)
+def _gather_kernel(wp_device: str):
+    """The probe kernel, compiled/loaded on the calling thread (never by two chunk threads at once)."""
+    wp = devmod.init_warp()
+    from .kernels.roofline import gather_sum as kernel
+
+    wp.load_module(kernel.module, device=wp_device)
+    return kernel
+
+
+def gather_sum(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """(T, 2) float32 table and (N, 8) int32 row ids -> (N, 2): each point's 8 rows summed in order.
+
+    Runs ``kernels/roofline.py`` with the grid forward's thread split: by points into
+    ``num_threads()`` chunks on CPU (:func:`~warpnerf.device.run_chunks`), one launch on CUDA.
+    Row ids must lie in [0, T) (not checked: a probe, not an op).
+    """
+    from .kernels.roofline import GATHERS_PER_THREAD
+    from .ops.launch import as_warp, launch
+
+    if table.dtype != torch.float32 or table.dim() != 2 or table.shape[1] != 2:
+        raise ValueError(f"gather_sum: table must be (T, 2) float32, got {tuple(table.shape)} {table.dtype}")
+    if rows.dtype != torch.int32 or rows.dim() != 2 or rows.shape[1] != GATHERS_PER_THREAD:
+        raise ValueError(f"gather_sum: rows must be (N, {GATHERS_PER_THREAD}) int32, "
+                         f"got {tuple(rows.shape)} {rows.dtype}")
+    wp = devmod.init_warp()
+    dev = table.device
+    kernel = _gather_kernel("cpu" if dev.type == "cpu" else f"cuda:{dev.index or 0}")
+    n = rows.shape[0]
+    out = torch.empty(n, 2, dtype=table.dtype, device=dev)
+    args = as_warp(table, wp.vec2f), as_warp(rows)
+    out_wp = as_warp(out, wp.vec2f)
+    chunks = devmod.split_range(n, devmod.num_threads()) if dev.type == "cpu" else [(0, n)]
+    devmod.run_chunks([lambda lo=lo, hi=hi: launch(kernel, hi - lo, [*args, lo, out_wp], dev)
+                       for lo, hi in chunks if hi > lo])
+    return out
+
+
+def gather_rate(table_rows: int, n: int = 262144, repeats: int = 5, device: torch.device | str = "cpu",
+                seed: int = 0) -> float:
+    """Random gathers per second of this machine: :func:`gather_sum` of ``n`` points, each reading
+    8 uniformly random rows of a ``table_rows``-row float32 vec2 table; median of ``repeats`` runs.
+
+    The rows are random over the whole table, so a grid encoding, whose coarse levels are dense
+    and cache-resident and whose level-major launches stay in one level's slice, can exceed it.
+    """
+    from .kernels.roofline import GATHERS_PER_THREAD
+
+    dev = torch.device(device)
+    gen = torch.Generator().manual_seed(seed)
+    table = torch.rand(table_rows, 2, generator=gen).to(dev)
+    rows = torch.randint(0, table_rows, (n, GATHERS_PER_THREAD), generator=gen, dtype=torch.int32).to(dev)
+
+    def run():
+        gather_sum(table, rows)
+        _sync(dev)
+
+    return n * GATHERS_PER_THREAD / median_seconds(run, repeats)
+
+
+def gemm_flop_rate(repeats: int = 5, device: torch.device | str = "cpu", shape=GEMM_SHAPE, seed: int = 0) -> float:
+    """float32 FLOP/s of ``torch.mm`` of (m, k) @ (k, n), ``shape = (m, k, n)``: 2 m k n FLOPs over
+    the median of ``repeats`` runs, output allocated once (torch's own thread count)."""
+    m, k, n = shape
+    dev = torch.device(device)
+    gen = torch.Generator().manual_seed(seed)
+    a, b = torch.randn(m, k, generator=gen).to(dev), torch.randn(k, n, generator=gen).to(dev)
+    out = torch.empty(m, n, device=dev)
+
+    def run():
+        torch.mm(a, b, out=out)
+        _sync(dev)
+
+    return 2.0 * m * k * n / median_seconds(run, repeats)
+
+
+def mlp_flops_per_sample(*nets: torch.nn.Module) -> int:
+    """Forward FLOPs per sample of every ``nn.Linear`` in ``nets``: 2 * sum(in * out) (multiply-adds;
+    biases and activations are not counted). Backward (input and weight gradients) is ~2x this."""
+    return sum(2 * m.in_features * m.out_features for net in nets for m in net.modules()
+               if isinstance(m, torch.nn.Linear))
+
+
+def mlp_seconds(nets, n: int, repeats: int = 5, seed: int = 0) -> float:
+    """Median seconds of forward + backward of each net in ``nets`` on ``n`` random samples.
+
+    Gradients go to the inputs and the weights, as in training (the density MLP's input gradient
+    feeds the grid, the color MLP's the density MLP); returned, not accumulated into ``.grad``.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    dev = next(nets[0].parameters()).device
+    cases = []
+    for net in nets:
+        linears = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+        x = torch.randn(n, linears[0].in_features, generator=gen).to(dev).requires_grad_()
+        cotangent = torch.ones(n, linears[-1].out_features, device=dev)  # allocated once, as in bench_encoding
+        cases.append((net, x, cotangent, [x, *net.parameters()]))
+
+    def run():
+        for net, x, cotangent, wrt in cases:
+            torch.autograd.grad(net(x), wrt, cotangent)
+        _sync(dev)
+
+    return median_seconds(run, repeats)
+
+
 def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_table_size: int = 19,
                    repeats: int = 5, torch_repeats: int | None = None, device: str = "cpu", seed: int = 0,
-                   model: str = "ngp", cp_rank: int = 8) -> dict:
+                   model: str = "ngp", cp_rank: int = 8, roofline: bool = True) -> dict:
     """Grid-encoding throughput (points/s) of the Warp op and its torch twin.
 
     ``model`` picks the encoding: ``ngp`` (hash grid: ``features``, ``log2_table_size``) or
@@ -57,6 +182,14 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
     G²fR mask early in training (first 4 levels active). ``fwdbwd`` differentiates the grid
     only, as in NeRF training with fixed cameras; ``warp_fwdbwd_xgrad_pts_s`` adds the
     gradient with respect to the points (pose task). ``torch_repeats`` defaults to ``repeats``.
+
+    ``warp_bwd_alloc_s`` is the median time of allocating and zeroing one parameter gradient
+    (``torch.zeros_like(table)``), which the Warp backward does on every call: the part of
+    ``warp_fwdbwd_s`` that is not kernel work. ``roofline`` (hash grid only; ``None`` for
+    ``mtrf`` or ``roofline=False``): the machine's random-gather rate on a table of
+    ``levels * 2^log2_table_size`` vec2 rows (:func:`gather_rate` with ``n * levels`` points,
+    at most 2^20) and the rate the uniform-point forward reaches, ``n * L * 8`` corner gathers
+    per ``warp_fwd_s``.
     """
     torch_repeats = repeats if torch_repeats is None else torch_repeats
     wp_device = devmod.resolve_device(device)
@@ -85,10 +218,6 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         "g2fr_first4": (torch.rand(n, 3, generator=gen), early),
     }
 
-    def sync():
-        if tdev.type == "cuda":
-            torch.cuda.synchronize()
-
     # the cotangent is allocated once: the timed runs hold only the op's own allocations
     cotangent = torch.ones(n, spec.out_dim, device=tdev)
 
@@ -104,7 +233,7 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
             else:
                 with torch.no_grad():
                     encode(xi, table, spec, w)
-            sync()
+            _sync(tdev)
         return median_seconds(run, reps)
 
     results = {}
@@ -126,6 +255,25 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         results[name] = r
 
     head = results["uniform"]
+    params = table.detach()
+
+    def alloc():
+        torch.zeros_like(params)  # what GridLauncher.backward allocates per call
+        _sync(tdev)
+
+    alloc_s = median_seconds(alloc, repeats)
+    roof = None
+    if roofline and model == "ngp":
+        from .kernels.roofline import GATHERS_PER_THREAD
+
+        table_rows = levels << log2_table_size
+        # as many threads as the forward's (point, level) pairs, so launch overheads weigh the same
+        points = min(n * levels, _GATHER_POINTS_MAX)
+        machine = gather_rate(table_rows, points, repeats, tdev, seed)
+        reached = n * levels * GATHERS_PER_THREAD / head["warp_fwd_s"]
+        roof = {"gather_table_rows": table_rows, "gather_points": points, "gathers_per_point": GATHERS_PER_THREAD,
+                "machine_gathers_s": machine,
+                "encoding_fwd_gathers_s": reached, "encoding_fwd_fraction": reached / machine}
     return {
         "benchmark": "encoding",
         "model": model,
@@ -140,6 +288,9 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         "torch_threads": torch.get_num_threads(),
         **{k: head[k] for k in ("warp_fwd_pts_s", "warp_fwdbwd_pts_s", "warp_fwdbwd_xgrad_pts_s",
                                 "torch_fwd_pts_s", "torch_fwdbwd_pts_s", "ratio_fwd", "ratio_fwdbwd")},
+        "warp_bwd_alloc_s": alloc_s,
+        "warp_bwd_alloc_fraction": alloc_s / head["warp_fwdbwd_s"],
+        "roofline": roof,
         "cases": results,
     }
 
@@ -158,6 +309,14 @@ def format_encoding(res: dict) -> str:
             f"{r['ratio_fwd']:>10.1f}x{r['ratio_fwdbwd']:>10.1f}x"
         )
     lines.append(f"fwd+bwd incl. d/dx (uniform): {res['warp_fwdbwd_xgrad_pts_s'] / 1e6:.2f} M points/s")
+    lines.append(f"warp fwd+bwd allocates a zeroed table gradient per call: {res['warp_bwd_alloc_s'] * 1e3:.2f} ms of "
+                 f"{res['n'] / res['warp_fwdbwd_pts_s'] * 1e3:.2f} ms ({res['warp_bwd_alloc_fraction']:.0%})")
+    roof = res.get("roofline")
+    if roof:
+        lines.append(f"roofline: machine {roof['machine_gathers_s'] / 1e9:.3f} G gathers/s "
+                     f"({roof['gathers_per_point']} random rows of a {roof['gather_table_rows']:,}-row table), "
+                     f"encoding fwd reaches {roof['encoding_fwd_gathers_s'] / 1e9:.3f} G/s "
+                     f"({roof['encoding_fwd_fraction']:.0%})")
     return "\n".join(lines)
 
 
@@ -185,7 +344,7 @@ def _twin_ops():
 
 
 def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", data_root: str | None = None,
-               torch_repeats: int | None = None) -> dict:
+               torch_repeats: int | None = None, roofline: bool = True) -> dict:
     """Training-step throughput on a standard batch.
 
     Trains the ``full`` preset for ``warmup_steps`` steps on lego (when ``data_root`` has it) or
@@ -194,6 +353,12 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
     state, same batch size; ``torch_repeats`` defaults to ``repeats``). Each backend gets one
     untimed step first; rates are from the median step time. Reports samples/s and
     iterations/s of both and their ratio.
+
+    ``roofline`` (``None`` when ``roofline=False``): the float32 GEMM rate (:func:`gemm_flop_rate`)
+    and what the field's two MLPs reach: forward + backward (3x the forward FLOPs,
+    :func:`mlp_flops_per_sample`) of the density and color MLPs alone on the Warp arm's median
+    samples per step (:func:`mlp_seconds`, ``repeats`` runs), timed after both arms, and the
+    share of the Warp step that MLP time is.
     """
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
@@ -232,6 +397,17 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
     warp_step, warp_samples = timed(repeats, start)
     with _twin_ops():
         torch_step, torch_samples = timed(torch_repeats, start + repeats + 1)
+    roof = None
+    if roofline:
+        nets = (trainer.field.density_net, trainer.field.color_net)
+        samples = max(1, round(warp_samples))
+        flops = 3 * mlp_flops_per_sample(*nets)  # forward + backward per sample
+        mlp_s = mlp_seconds(nets, samples, repeats)
+        reached = flops * samples / mlp_s
+        peak = gemm_flop_rate(repeats, devmod.torch_device(wp_device))
+        roof = {"gemm_shape": list(GEMM_SHAPE), "gemm_flops_s": peak, "mlp_samples": samples,
+                "mlp_fwdbwd_flops_per_sample": flops, "mlp_s": mlp_s,
+                "mlp_flops_s": reached, "mlp_fraction": reached / peak, "mlp_step_fraction": mlp_s / warp_step}
     return {
         "benchmark": "step",
         "scene": scene.name,
@@ -248,12 +424,19 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
         "ratio": torch_step / warp_step,
         "samples_per_step": warp_samples,
         "occupied_fraction": trainer.occupancy.occupied_fraction(),
+        "roofline": roof,
     }
 
 
 def format_step(res: dict) -> str:
-    return (f"training step on {res['scene']} ({res['scene_source']}), {res['rays_per_step']} rays, "
+    text = (f"training step on {res['scene']} ({res['scene_source']}), {res['rays_per_step']} rays, "
             f"{res['samples_per_step']:.0f} samples/step, device={res['device']}, threads={res['threads']}\n"
             f"warp : {res['warp_iters_s']:.2f} it/s, {res['warp_samples_s'] / 1e6:.2f} M samples/s\n"
             f"torch: {res['torch_iters_s']:.3f} it/s, {res['torch_samples_s'] / 1e6:.3f} M samples/s\n"
             f"ratio (torch time / warp time): {res['ratio']:.1f}x")
+    roof = res.get("roofline")
+    if roof:
+        text += (f"\nroofline: GEMM {roof['gemm_flops_s'] / 1e9:.1f} GFLOP/s, MLPs fwd+bwd reach "
+                 f"{roof['mlp_flops_s'] / 1e9:.1f} GFLOP/s ({roof['mlp_fraction']:.0%}), "
+                 f"{roof['mlp_step_fraction']:.0%} of the warp step")
+    return text

@@ -40,11 +40,13 @@ def cmd_bench(args) -> int:
     _setup_device(args)
     if args.what == "encoding":
         res = bench.bench_encoding(n=args.n, levels=args.levels, log2_table_size=args.log2_table_size,
-                                   repeats=args.repeats, device=args.device, model=args.model)
+                                   repeats=args.repeats, device=args.device, model=args.model,
+                                   roofline=not args.no_roofline)
         print(json.dumps(res) if args.json else bench.format_encoding(res))
         return 0
     if args.what == "step":
-        res = bench.bench_step(repeats=args.repeats, device=args.device, data_root=args.data_root)
+        res = bench.bench_step(repeats=args.repeats, device=args.device, data_root=args.data_root,
+                               roofline=not args.no_roofline)
         print(json.dumps(res) if args.json else bench.format_step(res))
         return 0
     raise UserError(f"unknown benchmark '{args.what}'")
@@ -173,6 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--model", default="ngp", choices=list(MODELS), help="encoding: hash grid or Mtrf CP lines")
     b.add_argument("--repeats", type=int, default=5)
     b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.add_argument("--no-roofline", action="store_true",
+                   help="skip measuring the machine's gather and GEMM rates next to the benchmark")
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
     _add_device(b)
     b.set_defaults(func=cmd_bench)

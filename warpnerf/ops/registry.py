@@ -29,6 +29,7 @@ STATIC_KERNEL_MODULES = {
     "composite": "warpnerf.kernels.composite",
     "occupancy": "warpnerf.kernels.occupancy",
     "raytrace": "warpnerf.kernels.raytrace",
+    "roofline": "warpnerf.kernels.roofline",  # bench's random-gather probe, not a training op
 }
 
 # the dtypes every grid variant exists in (float64 for gradcheck), as Warp type names
@@ -39,7 +40,7 @@ GRID_DTYPE_NAMES = ("float32", "float64")
 class KernelModule:
     """One Warp module: the unit Warp compiles (one source file, one PTX per architecture)."""
 
-    op: str  # op family: hashgrid, cpgrid, raymarch, composite, occupancy, raytrace
+    op: str  # op family: hashgrid, cpgrid, raymarch, composite, occupancy, raytrace, roofline
     variant: str  # e.g. "dim=3 F=2 float32 fwd"; "" for a fixed module
     module: object  # warp Module
 
