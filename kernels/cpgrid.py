@@ -66,6 +66,15 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
         vz = (one - fz) * lines[off + bz, 2] + fz * lines[off + bz + 1, 2]
         out[n, lvl] = wp.cw_mul(wp.cw_mul(vx, vy), vz) * weights[lvl]
 
+    @wp.func
+    def is_zero(g: vec):
+        # exact test per component (a squared norm would underflow for tiny non-zero gradients)
+        nonzero = int(0)
+        for f in range(wp.static(rank)):
+            if g[f] != dtype(0.0):
+                nonzero = 1
+        return nonzero == 0
+
     @wp.kernel(enable_backward=False, module="unique")
     def cpgrid_encode_bwd(
         x: wp.array2d(dtype=dtype),
@@ -85,6 +94,10 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
         s = resolutions[lvl]
         off = offsets[lvl]
         g = grad_out[n, lvl] * weights[lvl]
+        if is_zero(g):
+            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
+            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
+            return
         bx, fx, dx_ = cell(x[n, 0], s)
         by, fy, dy_ = cell(x[n, 1], s)
         bz, fz, dz_ = cell(x[n, 2], s)

@@ -123,6 +123,15 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
             acc = acc + corner_weight(c, fx, fy, fz) * table[row]
         out[n, lvl] = acc * weights[lvl]
 
+    @wp.func
+    def is_zero(g: vec):
+        # exact test per component (a squared norm would underflow for tiny non-zero gradients)
+        nonzero = int(0)
+        for f in range(wp.static(n_features)):
+            if g[f] != zero:
+                nonzero = 1
+        return nonzero == 0
+
     @wp.kernel(enable_backward=False, module="unique")
     def hashgrid_encode_bwd(
         x: wp.array2d(dtype=dtype),
@@ -145,6 +154,10 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
         off = offsets[lvl]
         hsh = hashed[lvl]
         g = grad_out[n, lvl] * weights[lvl]
+        if is_zero(g):
+            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
+            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
+            return
         bx, fx, dx_ = cell(x[n, 0], s)
         by, fy, dy_ = 0, zero, zero
         bz, fz, dz_ = 0, zero, zero

@@ -61,6 +61,38 @@ def test_gradients_match_twin(dim):
     torch.testing.assert_close(g_ours[1], g_ref[1], atol=1e-4, rtol=1e-5)
 
 
+def sparse_cotangent(shape, seed):
+    """Random cotangent whose rows are mostly exact zeros (samples the compositing ignores, which the
+    backward kernels skip) with a few tiny non-zero entries that must not be skipped."""
+    gen = torch.Generator().manual_seed(seed)
+    cot = torch.randn(shape, generator=gen)
+    cot[torch.rand(shape[0], generator=gen) < 0.6] = 0.0
+    tiny = torch.nonzero(cot[:, 0] == 0).squeeze(1)[::7]
+    cot[tiny, -1] = 1e-30  # squares to 0 in float32: a norm test would wrongly skip these rows
+    return cot, tiny
+
+
+@pytest.mark.parametrize("dim", [1, 3])
+def test_zero_gradient_rows_are_skipped_exactly(dim):
+    """The backward skips (point, level) pairs whose upstream gradient is exactly zero: the result
+    equals the twin's, rows with a zero cotangent get a zero d/dx, and tiny non-zero rows still count."""
+    spec = small_spec(dim)
+    x, table = random_inputs(spec, seed=3)
+    x.requires_grad_()
+    table.requires_grad_()
+    ours = hashgrid_encode(x, table, spec, WEIGHTS)
+    ref = twin.hashgrid_encode(x, table, spec, WEIGHTS)
+    cot, tiny = sparse_cotangent(ours.shape, seed=4)
+    g_ours = torch.autograd.grad(ours, (x, table), cot)
+    g_ref = torch.autograd.grad(ref, (x, table), cot)
+    torch.testing.assert_close(g_ours[0], g_ref[0], atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(g_ours[1], g_ref[1], atol=1e-4, rtol=1e-5)
+    zero_rows = ~cot.any(dim=1)
+    assert zero_rows.sum() > 500 and not g_ours[0][zero_rows].any()
+    # the tiny rows are not skipped: their x-gradient is non-zero, as the twin's (where the level is active)
+    assert g_ours[0][tiny].abs().sum() > 0 and torch.equal(g_ours[0][tiny] != 0, g_ref[0][tiny] != 0)
+
+
 @pytest.mark.gradcheck
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_float64_gradcheck(dim):
