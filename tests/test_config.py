@@ -120,3 +120,9 @@ def test_g2fr_beta_has_one_default():
     assert spectrum.FitConfig().beta == C.G2FR_BETA
     for task in ("full", "fewshot", "pose"):  # presets do not restate it
         assert "g2fr_beta" not in C.load_toml(C.preset_path(task))
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.5, float("nan")])
+def test_occ_uniform_fraction_is_checked(bad):
+    with pytest.raises(C.ConfigError, match="^occ_uniform_fraction must be in"):
+        C.validate(C.build_config("full", overrides={"occ_uniform_fraction": bad}))

@@ -74,20 +74,21 @@ def test_ema_max_rule_and_threshold():
     assert 0.3 < grid.occupied_fraction() < 0.7
 
 
-def test_after_warmup_only_picked_cells_change():
+@pytest.mark.parametrize("uniform_fraction, lo, hi", [(0.25, 0.18, 0.26), (1 / 16, 0.045, 0.075)])
+def test_after_warmup_only_picked_cells_change(uniform_fraction, lo, hi):
     res = 16
-    grid = OccupancyGrid(AABB, resolution=res, decay=0.5, warmup_steps=1)
+    grid = OccupancyGrid(AABB, resolution=res, decay=0.5, warmup_steps=1, uniform_fraction=uniform_fraction)
     grid.update(0, ball, generator=torch.Generator().manual_seed(4))
     occupied = grid.bitfield == 1
     grid.density.fill_(1.0)  # every picked cell now visibly decays to 0.5
     grid.update(5, lambda x: torch.zeros(x.shape[0]), generator=torch.Generator().manual_seed(5))
     changed = grid.density != 1.0
     assert bool((grid.density[changed] == 0.5).all())
-    # picked: all occupied cells (fewer than a quarter here) plus res^3/4 uniform draws with
-    # repeats, i.e. 1 - exp(-1/4) = 22% distinct cells
+    # picked: all occupied cells (fewer than a quarter here) plus uniform_fraction * res^3 uniform
+    # draws with repeats, i.e. 1 - exp(-f) distinct cells: 22 % for 1/4, 6.1 % for 1/16
     assert 0.0 < float(occupied.float().mean()) < 0.25 and bool(changed[occupied].all())
     fraction_of_rest = float(changed[~occupied].float().mean())
-    assert 0.18 < fraction_of_rest < 0.26
+    assert lo < fraction_of_rest < hi
 
 
 def test_maybe_update_follows_update_every():
@@ -129,6 +130,8 @@ def test_bad_inputs_raise():
         OccupancyGrid((0, 0, 0, 1, 1, -1))
     with pytest.raises(ValueError, match="resolution"):
         OccupancyGrid(AABB, resolution=0)
+    with pytest.raises(ValueError, match="uniform_fraction"):
+        OccupancyGrid(AABB, uniform_fraction=0.0)
     grid = OccupancyGrid(AABB, resolution=4)
     with pytest.raises(ValueError, match="one density per point"):
         grid.update(0, lambda x: torch.zeros(3))

@@ -29,8 +29,8 @@ class OccupancyGrid:
     ``density_fn`` at one uniformly jittered point per picked cell, and sets
     ``density = max(density * decay, sigma)`` on the picked cells only (a cell picked twice
     takes the larger sigma). During warm-up (step < ``warmup_steps``) every cell is picked;
-    afterwards res^3 / 4 uniformly random cells (with repeats) plus up to res^3 / 4 random
-    currently occupied cells. A cell is occupied when density > min(threshold, mean density).
+    afterwards ``uniform_fraction`` * res^3 uniformly random cells (with repeats; instant-ngp
+    and nerfacc: 1/4) plus up to res^3 / 4 random currently occupied cells. A cell is occupied when density > min(threshold, mean density).
     Before the first update every cell is occupied, so an untrained model is sampled everywhere.
 
     Attributes:
@@ -56,12 +56,13 @@ class OccupancyGrid:
         threshold: float = 0.01,
         warmup_steps: int = 256,
         update_every: int = 16,
+        uniform_fraction: float = 0.25,
     ):
         lo, hi = aabb_floats(aabb)
-        if int(resolution) < 1 or int(update_every) < 1 or not 0.0 <= decay <= 1.0:
+        if int(resolution) < 1 or int(update_every) < 1 or not 0.0 <= decay <= 1.0 or not 0.0 < uniform_fraction <= 1.0:
             raise ValueError(
-                f"OccupancyGrid: need resolution >= 1, update_every >= 1 and decay in [0, 1], "
-                f"got {resolution}, {update_every}, {decay}"
+                f"OccupancyGrid: need resolution >= 1, update_every >= 1, decay in [0, 1] and uniform_fraction "
+                f"in (0, 1], got {resolution}, {update_every}, {decay}, {uniform_fraction}"
             )
         self.aabb = tuple(lo + hi)
         self.resolution = int(resolution)
@@ -70,6 +71,7 @@ class OccupancyGrid:
         self.threshold = float(threshold)
         self.warmup_steps = int(warmup_steps)
         self.update_every = int(update_every)
+        self.uniform_fraction = float(uniform_fraction)
         num_cells = self.resolution**3
         self.density = torch.zeros(num_cells, dtype=torch.float32, device=self.device)
         self.bitfield = torch.ones(num_cells, dtype=torch.uint8, device=self.device)
@@ -130,7 +132,7 @@ class OccupancyGrid:
         if step < self.warmup_steps:
             return torch.arange(n, dtype=torch.int32, device=self.device)
         quarter = max(1, n // 4)
-        uniform = self._random(torch.randint, (quarter,), generator, high=n)
+        uniform = self._random(torch.randint, (max(1, int(n * self.uniform_fraction)),), generator, high=n)
         occupied = torch.nonzero(self.bitfield).flatten()
         if occupied.numel() > quarter:
             occupied = occupied[self._random(torch.randint, (quarter,), generator, high=occupied.numel())]
