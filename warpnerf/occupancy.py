@@ -30,7 +30,8 @@ class OccupancyGrid:
     ``density = max(density * decay, sigma)`` on the picked cells only (a cell picked twice
     takes the larger sigma). During warm-up (step < ``warmup_steps``) every cell is picked;
     afterwards ``uniform_fraction`` * res^3 uniformly random cells (with repeats; instant-ngp
-    and nerfacc: 1/4) plus up to res^3 / 4 random currently occupied cells. A cell is occupied when density > min(threshold, mean density).
+    and nerfacc: 1/4, the trainer's default 1/16) plus up to res^3 / 4 random currently
+    occupied cells. A cell is occupied when density > min(threshold, mean density).
     Before the first update every cell is occupied, so an untrained model is sampled everywhere.
 
     Attributes:
