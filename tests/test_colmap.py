@@ -214,3 +214,20 @@ def test_short_training_matches_the_blender_load(exported):
         print(layout, psnr, ref)
         assert abs(psnr - ref) < 0.1, (layout, psnr, ref)
     assert ref > 12.0  # it did learn something in 40 steps (white background alone is ~10 dB)
+
+
+def test_unbounded_garden_captures_load_contracted(tmp_path):
+    """Issue 12.3/12.5: the built-in unbounded garden written out as a capture loads with
+    ``unbounded=True`` into a contracted ray space around the normalised cameras, the same images
+    as the built-in load; without the flag it stays a bounded box."""
+    cache = str(tmp_path / "cache")
+    folder = builtin.export_builtin("garden", str(tmp_path / "garden"), "transforms", 24, cache, (6, 1, 2),
+                                    progress=False)
+    scene = load_transforms_json(folder, unbounded=True)
+    assert scene.ray_space.is_contracted and scene.ray_space.far == 1000.0 and scene.aabb == (-2, -2, -2, 2, 2, 2)
+    assert float(scene.train.c2w[:, :, 3].abs().max()) <= 1.0 + 1e-5  # cameras in [-1, 1]^3
+    assert not load_transforms_json(folder).ray_space.is_contracted
+    ref = builtin.load_builtin("garden", 24, cache, counts=(6, 1, 2), progress=False)
+    assert ref.ray_space.is_contracted and ref.kind == "unbounded"
+    torch.testing.assert_close(scene.train.images, ref.train.images)
+    assert float(ref.train.alpha.min()) == 1.0  # the environment covers every pixel

@@ -86,9 +86,35 @@ def test_loaders_give_their_scene_its_ray_space(tmp_path):
     assert space.forward_facing and not space.box_is_world and llff.aabb == NDC_AABB
 
 
+def test_contracted_space_normalises_contracts_and_inverts():
+    """Unbounded scenes: apply only normalises (directions unchanged), to_field contracts into the
+    ball of radius 2 (the box [-2, 2]^3), to_world undoes both."""
+    space = RaySpace.contracted(0.05, far=500.0, center=(1.0, -2.0, 0.5), scale=0.25)
+    assert space.is_contracted and not space.box_is_world and not space.forward_facing
+    assert space.aabb == (-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)
+    g = torch.Generator().manual_seed(0)
+    o, d = torch.randn(64, 3, generator=g) * 10, torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    o2, d2 = space.apply(o, d)
+    assert torch.equal(d2, d)
+    torch.testing.assert_close(o2, (o - torch.tensor([1.0, -2.0, 0.5])) * 0.25)
+    x = o2 + 3.0 * d2
+    y = space.to_field(x)
+    assert float(y.norm(dim=-1).max()) < 2.0
+    inner = x.norm(dim=-1) <= 1.0
+    assert torch.equal(y[inner], x[inner])
+    torch.testing.assert_close(space.to_world(y), o + 12.0 * d, rtol=1e-4, atol=1e-4)
+    # the other kinds keep the field's input as marched
+    plain = RaySpace()
+    assert plain.to_field(x) is x
+
+
 def test_bad_ray_spaces_are_refused():
-    with pytest.raises(ValueError, match="unknown ray space kind 'contracted'"):
-        RaySpace(kind="contracted")
+    with pytest.raises(ValueError, match="unknown ray space kind 'spherical'"):
+        RaySpace(kind="spherical")
+    with pytest.raises(ValueError, match="finite far"):
+        RaySpace.contracted(0.1, far=math.inf)
+    with pytest.raises(ValueError, match="scale > 0"):
+        RaySpace.contracted(0.1, scale=0.0)
     with pytest.raises(ValueError, match="focal, width, height"):
         RaySpace(kind="ndc")
     with pytest.raises(Exception):  # frozen: the scene's space cannot drift from what the loader made

@@ -89,6 +89,7 @@ class TrainConfig:
     model: str = "ngp"  # grid encoding: ngp (Instant-NGP hash grid) | mtrf (multi-resolution CP, paper's Mtrf)
     downscale: int = 1  # integer image downscale applied at load time
     builtin_resolution: Optional[int] = None  # image size of built-in scenes (unset: the generator's default)
+    unbounded: bool = False  # COLMAP / transforms.json captures: 360° scene with a distant background (scene contraction)
     # --- optimisation ---
     iters: int = 2000  # training steps
     batch_rays: int = 4096  # rays per step at the start; adapted to keep target_samples

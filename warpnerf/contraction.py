@@ -10,10 +10,11 @@ space, which is why samples beyond the ball are spaced linearly in disparity
 (:func:`disparity_spaced`). Normalised capture scenes (:mod:`warpnerf.data.normalize`) put the
 cameras inside [-1, 1]^3, i.e. near the unit ball, as this assumes.
 
-Status: plain torch, differentiable, tested; NOT yet wired into ray marching, the occupancy grid
-or the encoders (those live in kernels/ and warpnerf/ops/, a separate piece of work). The
-scene's ray space (:mod:`warpnerf.data.rayspace`, docs/design.md §6) reserves the kind
-``"contracted"`` for it.
+Used by the ``"contracted"`` ray space (:mod:`warpnerf.data.rayspace`, docs/design.md §6):
+the renderer maps every marched sample through :func:`contract` before the field, the occupancy
+grid covers the contracted box [-2, 2]^3, and the marcher (``march_rays(contract=True)``, the
+same formula in ``kernels/raymarch.py``) takes steps of equal length in the contracted space
+(world steps ~ ``step * |x|^2`` on rays leaving the scene).
 """
 
 from __future__ import annotations

@@ -133,7 +133,7 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
         # depth is measured along the rays the marcher saw: find the point there, then go back to the world
         space = trainer.scene.ray_space
         om, dm = space.apply(o, d)
-        x = space.to_world(om + t[:, None] * dm)
+        x = space.to_world(space.to_field(om + t[:, None] * dm))
         keep &= torch.isfinite(x).all(-1)  # points at infinity (the far end of an NDC ray)
         pts.append(x[keep].cpu())
         cols.append(img["rgb"].reshape(-1, 3)[keep].clamp(0, 1).cpu())

@@ -5,7 +5,8 @@ Data flow of one batch (DESIGN §2):
     c2w, pixels --pixel_rays--> o, d           torch, differentiable w.r.t. c2w (pose task)
     o, d --ray_space.apply--> o, d              torch: the scene's ray space (DESIGN §6)
     o, d --march_rays--> packed (ray, t0, t1)   Warp, occupancy-grid skipping, no gradient
-    x = o[ray] + t_mid d[ray]                   torch, differentiable w.r.t. o and d
+    x = to_field(o[ray] + t_mid d[ray])         torch, differentiable w.r.t. o and d (contraction
+                                                for unbounded scenes, else the identity)
     field(x, d, level weights) -> sigma, rgb    Warp hash grid + torch MLPs
     composite_rays -> rgb, opacity, depth       Warp, hand-written backward
 """
@@ -108,16 +109,26 @@ class Renderer:
             packed, n_marched = march_rays_within_budget(
                 o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
                 self.occupancy.resolution, self.near, self.far, self.step, self.max_samples_per_ray, jitter,
-                max_total_samples=self.sample_budget)
+                max_total_samples=self.sample_budget, contract=self.ray_space.is_contracted)
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
-        x = gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray)
+        x = self.ray_space.to_field(gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray))
         sigma, geo = self.field.geometry(x, level_weights)
         rgb = self._sample_colors(sigma, geo, view_dirs, ray, packed)
         bg = self.background if background is None else background
         color, opacity, depth = composite_rays(sigma, rgb, packed.t_starts, packed.t_ends, packed.ray_offsets,
                                                packed.ray_counts, bg)
         return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), int(ray.shape[0]), n_marched)
+
+    def step_at(self, x: torch.Tensor) -> torch.Tensor:
+        """(N,) marching step (along the marched ray) at (N, 3) points of the field's space: ``step``;
+        for unbounded scenes beyond the unit ball the longest step the marcher takes there (on a
+        ray leaving the scene radially), ``step * r^2`` with r the uncontracted radius. The
+        occupancy grid thresholds density times this step."""
+        if not self.ray_space.is_contracted:
+            return torch.full(x.shape[:1], self.step, dtype=x.dtype, device=x.device)
+        r = x.norm(dim=-1).clamp(1.0, 2.0 - 1e-3)  # |uncontract(x)| = 1 / (2 - |x|) beyond the ball
+        return self.step / (2.0 - r) ** 2
 
     def _sample_colors(self, sigma, geo, view_dirs, ray, packed) -> torch.Tensor:
         if self.color_weight_eps <= 0 or sigma.shape[0] == 0:

@@ -32,7 +32,8 @@ def load_scene_for(cfg: TrainConfig, progress: bool = True):
     from .data.resolve import load_scene
 
     return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
-                      builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb)
+                      builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
+                      unbounded=cfg.unbounded)
 
 
 RESULT_NEUTRAL_KEYS = ("out", "device", "threads")  # change where/how fast a run goes, not its numbers

@@ -95,7 +95,7 @@ class Trainer:
         cfg = self.cfg
         weights = self.level_weights(step)
         # the grid thresholds optical thickness sigma * step (instant-ngp / nerfacc), not raw sigma
-        if self.occupancy.maybe_update(step, lambda x: self.field.density(x, weights) * self.renderer.step, self.gen):
+        if self.occupancy.maybe_update(step, lambda x: self.field.density(x, weights) * self.renderer.step_at(x), self.gen):
             if not bool(self.occupancy.bitfield.any()):
                 # an update that empties the grid leaves no sample and so no gradient to recover
                 # from: re-open every cell and let the next updates prune again

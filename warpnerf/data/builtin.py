@@ -57,13 +57,25 @@ FILL_DIR = (-0.55, 0.70, -0.45)
 KEY_STRENGTH, FILL_STRENGTH, AMBIENT = 0.62, 0.18, 0.30
 
 
+# Unbounded built-in scenes: rendered by their own function, loaded with a contracted ray space
+# (warpnerf.data.rayspace): the world is scaled by GARDEN_SCALE so the chair's box (+-1.5) lies in
+# the unit ball; the cameras (radius 4.03) sit at 2.0, the ground's edge (8) at 4 and the
+# environment sphere (15) at 7.5, i.e. contracted radii 1.5, 1.75 and 1.87.
+UNBOUNDED = {
+    "garden": "the chair on a veined stone ground inside a distant marbled environment: an unbounded 360° scene",
+}
+GARDEN_SCALE = 0.5
+GARDEN_NEAR = 0.05  # normalised units (0.1 scene units)
+GARDEN_DEPTH_SCALE = 3000.0  # the environment is up to ~19 units away: 16-bit depth up to 21.8 units
+
+
 def builtin_scenes() -> dict[str, str]:
     """Name -> one-line description of every built-in scene."""
-    return {name: desc for name, (_, desc) in SCENES.items()}
+    return {**{name: desc for name, (_, desc) in SCENES.items()}, **UNBOUNDED}
 
 
 def scene_mesh(name: str) -> SceneMesh:
-    """The triangle mesh and materials of a built-in scene."""
+    """The triangle mesh and materials of a built-in (bounded) scene."""
     if name not in SCENES:
         raise DatasetError(f"unknown built-in scene '{name}'; built-in scenes: {', '.join(SCENES)}")
     return SCENES[name][0]()
@@ -250,7 +262,7 @@ def ensure_builtin(
     progress: bool = True,
 ) -> str:
     """Generate the built-in scene if its cache folder is missing or incomplete; returns the folder."""
-    if name not in SCENES:
+    if name not in builtin_scenes():
         raise DatasetError(f"unknown built-in scene '{name}'; built-in scenes: {', '.join(SCENES)}")
     resolution = int(resolution or DEFAULT_RESOLUTION)
     if resolution < 1:
@@ -309,7 +321,10 @@ def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTI
     from warpnerf.data.images import load_parallel
 
     t0 = time.time()
-    renderer = MeshRenderer(scene_mesh(name))
+    if name in UNBOUNDED:
+        renderer, depth_scale = GardenRenderer(), GARDEN_DEPTH_SCALE
+    else:
+        renderer, depth_scale = MeshRenderer(scene_mesh(name)), DEPTH_SCALE
     width = height = resolution
     focal = focal_from_angle(width)
     cams = split_cameras(counts)
@@ -327,9 +342,9 @@ def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTI
             for start in range(0, len(c2w), batch):
                 rgba, depth = renderer.render(c2w[start : start + batch], width, height, focal)
                 rgba8 = np.round(rgba * 255.0).astype(np.uint8)
-                if depth.max() * DEPTH_SCALE > 65535:
+                if depth.max() * depth_scale > 65535:
                     raise DatasetError(f"depth {depth.max():.2f} does not fit the 16-bit depth PNG of scene '{name}'")
-                depth16 = np.round(depth * DEPTH_SCALE).astype(np.uint16)
+                depth16 = np.round(depth * depth_scale).astype(np.uint16)
 
                 def write(k: int, stem: str) -> None:
                     # compress_level 3: ~2x faster than the default 6 for a few % larger files.
@@ -349,7 +364,7 @@ def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTI
                 bar.update(len(rgba))
             meta = {
                 "camera_angle_x": CAMERA_ANGLE_X,
-                "depth_scale": DEPTH_SCALE,
+                "depth_scale": depth_scale,
                 "warpnerf": {"scene": name, "generator_version": GENERATOR_VERSION, "resolution": resolution},
                 "frames": frames,
             }
@@ -376,7 +391,8 @@ def load_builtin(
     counts=DEFAULT_COUNTS,
     progress: bool = True,
 ) -> Scene:
-    """Generate (once) and load a built-in scene (source "builtin", kind "blender").
+    """Generate (once) and load a built-in scene (source "builtin", kind "blender"; the unbounded
+    ones, :data:`UNBOUNDED`, kind "unbounded" with a contracted ray space).
 
     Args:
         name: one of :func:`builtin_scenes`.
@@ -391,6 +407,11 @@ def load_builtin(
     folder = ensure_builtin(name, resolution, cache_dir, counts, progress)
     scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
     scene.source = "builtin"
+    if name in UNBOUNDED:
+        from warpnerf.data.rayspace import RaySpace
+
+        scene.kind = "unbounded"
+        scene.ray_space = RaySpace.contracted(GARDEN_NEAR, scale=GARDEN_SCALE)
     return scene
 
 
@@ -494,18 +515,33 @@ def export_builtin(
     return out_dir
 
 
-def render_garden(c2w: np.ndarray, width: int, height: int, focal: float) -> tuple[np.ndarray, np.ndarray]:
-    """Render the unbounded ``garden`` layout (chair on a textured ground inside a textured
-    environment sphere, :func:`warpnerf.data.builtin_meshes.garden_mesh`) from (N, 3, 4) cameras.
+class GardenRenderer:
+    """The unbounded ``garden`` layout (chair on a textured ground inside a textured environment
+    sphere, :func:`warpnerf.data.builtin_meshes.garden_mesh`), both meshes uploaded once.
 
     Two layers with the unchanged Warp tracer: the foreground with shadows, the environment
     without (a shadow ray would always hit the enclosing sphere); per pixel the nearer hit wins.
-    Returns rgb (N, H, W, 3) float32 (every pixel is covered) and camera-z depth (N, H, W).
     """
-    from warpnerf.data.builtin_meshes import garden_environment, garden_mesh
 
-    fg_rgba, fg_depth = MeshRenderer(garden_mesh()).render(c2w, width, height, focal)
-    env_rgba, env_depth = MeshRenderer(garden_environment(), shadows=False).render(c2w, width, height, focal)
-    use_fg = (fg_depth > 0) & ((fg_depth < env_depth) | (env_depth <= 0))
-    rgb = np.where(use_fg[..., None], fg_rgba[..., :3], env_rgba[..., :3])
-    return rgb.astype(np.float32), np.where(use_fg, fg_depth, env_depth).astype(np.float32)
+    def __init__(self):
+        from warpnerf.data.builtin_meshes import garden_environment, garden_mesh
+
+        self.fg = MeshRenderer(garden_mesh())
+        self.env = MeshRenderer(garden_environment(), shadows=False)
+
+    def render(self, c2w: np.ndarray, width: int, height: int, focal: float) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3, 4) cameras -> rgba (N, H, W, 4) float32 with alpha 1 (every pixel is covered) and
+        camera-z depth (N, H, W), like :meth:`MeshRenderer.render`."""
+        fg_rgba, fg_depth = self.fg.render(c2w, width, height, focal)
+        env_rgba, env_depth = self.env.render(c2w, width, height, focal)
+        use_fg = (fg_depth > 0) & ((fg_depth < env_depth) | (env_depth <= 0))
+        rgb = np.where(use_fg[..., None], fg_rgba[..., :3], env_rgba[..., :3])
+        rgba = np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
+        return rgba.astype(np.float32), np.where(use_fg, fg_depth, env_depth).astype(np.float32)
+
+
+def render_garden(c2w: np.ndarray, width: int, height: int, focal: float) -> tuple[np.ndarray, np.ndarray]:
+    """Render the ``garden`` layout (:class:`GardenRenderer`) from (N, 3, 4) cameras.
+    Returns rgb (N, H, W, 3) float32 (every pixel is covered) and camera-z depth (N, H, W)."""
+    rgba, depth = GardenRenderer().render(c2w, width, height, focal)
+    return rgba[..., :3], depth

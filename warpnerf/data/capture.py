@@ -87,6 +87,7 @@ def build_scene(
     white_background: bool = True,
     aabb_scale: float | None = None,
     normalize: bool = True,
+    unbounded: bool = False,
 ) -> Scene:
     """Assemble a Scene (source "dataset") from registered frames.
 
@@ -101,6 +102,9 @@ def build_scene(
             background.
         aabb_scale: fallback box half-side when there are no points (see normalize).
         normalize: apply :func:`normalization_from_cameras` (False keeps the capture frame).
+        unbounded: a 360° capture with a distant background: a contracted ray space
+            (:mod:`warpnerf.data.rayspace`) around the normalised cameras, which lie in
+            [-1, 1]^3, instead of a box; near from the points/cameras as for a box, far 1000.
 
     The applied map is returned in ``scene.normalization`` (a :class:`Normalization`).
     """
@@ -162,7 +166,7 @@ def build_scene(
         train=views(splits["train"]),
         test=views(splits["test"]),
         val=views(splits["val"]) if splits.get("val") else None,
-        ray_space=RaySpace.euclidean(aabb, near, far),
+        ray_space=RaySpace.contracted(near) if unbounded else RaySpace.euclidean(aabb, near, far),
         background=tuple(float(b) for b in bg),
         root=os.path.abspath(root),
     )

@@ -442,6 +442,7 @@ def load_colmap(
     images_dir: str | None = None,
     normalize: bool = True,
     name: str | None = None,
+    unbounded: bool = False,
 ) -> Scene:
     """Load a COLMAP scene folder (module docstring) into a :class:`Scene` (kind "colmap").
 
@@ -492,4 +493,5 @@ def load_colmap(
     if points is not None:
         points = points[np.all(np.isfinite(points), axis=1)]
     return build_scene(frames, points, root, "colmap", images_path, name=name, split_lists=read_split_lists(root),
-                       holdout=holdout, downscale=downscale, white_background=white_background, normalize=normalize)
+                       holdout=holdout, downscale=downscale, white_background=white_background, normalize=normalize,
+                       unbounded=unbounded)

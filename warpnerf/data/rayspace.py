@@ -24,10 +24,17 @@ Kinds:
   returns d' normalised (the marcher wants unit directions), so the marching bounds are
   [0, inf) and the box ends the ray at z' = 1. Uniform steps in NDC are uniform steps in
   inverse depth, which suits a far background.
-* ``"contracted"`` (reserved, not accepted yet): MipNeRF-360's scene contraction for unbounded
-  captures (:mod:`warpnerf.contraction`). Rays stay straight in the world, so ``apply`` would be
-  the identity; the samples, not the rays, are contracted, which needs the marcher and occupancy
-  grid to step in contracted space (not wired yet: see :mod:`warpnerf.contraction`).
+* ``"contracted"``: unbounded (360°) scenes, MipNeRF-360's scene contraction
+  (:mod:`warpnerf.contraction`). ``apply`` only normalises, o' = (o - ``center``) * ``scale``,
+  d' = d, so the part of the scene that matters most lies in the unit ball; rays stay straight
+  and are marched from ``near`` to ``far`` (normalised units, ``far`` finite) with steps growing
+  as |x|^2 beyond the ball (``march_rays(contract=True)``). The *samples* are contracted:
+  ``to_field`` maps a marched point into the ball of radius 2, which is the field's and the
+  occupancy grid's box [-2, 2]^3. Everything out to ``far`` is part of the field (the distant
+  background too); the renderer's background only shows through where the field is empty.
+
+The field and the occupancy grid always see ``to_field(x)`` of a marched point ``x``
+(the identity except for the contracted kind); ``to_world`` inverts both maps.
 """
 
 from __future__ import annotations
@@ -37,8 +44,9 @@ from dataclasses import dataclass
 
 import torch
 
-KINDS = ("euclidean", "ndc")
+KINDS = ("euclidean", "ndc", "contracted")
 NDC_AABB = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
+CONTRACTED_AABB = (-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -46,12 +54,13 @@ class RaySpace:
     """How a scene's world rays become the rays the marcher sees (module doc, docs/design.md §6).
 
     Attributes:
-        kind: ``"euclidean"`` or ``"ndc"`` (``"contracted"`` is reserved, see the module doc).
-        aabb: the scene box (x0, y0, z0, x1, y1, z1) in this space: the field's and the
-            occupancy grid's domain.
+        kind: ``"euclidean"``, ``"ndc"`` or ``"contracted"`` (module doc).
+        aabb: the scene box (x0, y0, z0, x1, y1, z1) in the field's space (``to_field``): the
+            field's and the occupancy grid's domain.
         near, far: marching bounds along the (unit) rays ``apply`` returns.
         focal, width, height, ndc_near: the NDC projection (pixels, and the world depth of the
-            near plane); unused by the euclidean kind.
+            near plane); unused by the other kinds.
+        center, scale: the contracted kind's normalisation (x' = (x - center) * scale).
     """
 
     kind: str = "euclidean"
@@ -62,6 +71,8 @@ class RaySpace:
     width: int = 0
     height: int = 0
     ndc_near: float = 1.0
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -69,6 +80,9 @@ class RaySpace:
         if self.kind == "ndc" and not (self.focal > 0 and self.width > 0 and self.height > 0):
             raise ValueError(f"an NDC ray space needs focal, width, height > 0, got {self.focal}, {self.width}, "
                              f"{self.height}")
+        if self.kind == "contracted" and not (self.scale > 0 and math.isfinite(self.far) and self.far > self.near):
+            raise ValueError(f"a contracted ray space needs scale > 0 and a finite far > near, got scale {self.scale}, "
+                             f"near {self.near}, far {self.far}")
 
     @classmethod
     def euclidean(cls, aabb, near: float, far: float) -> "RaySpace":
@@ -79,6 +93,18 @@ class RaySpace:
     def ndc(cls, focal: float, width: int, height: int, ndc_near: float = 1.0) -> "RaySpace":
         """LLFF's NDC for views with these intrinsics (pixels); box [-1, 1]^3, bounds [0, inf)."""
         return cls("ndc", NDC_AABB, 0.0, math.inf, float(focal), int(width), int(height), float(ndc_near))
+
+    @classmethod
+    def contracted(cls, near: float, far: float = 1000.0, center=(0.0, 0.0, 0.0), scale: float = 1.0) -> "RaySpace":
+        """Unbounded scene: world x -> (x - center) * scale, contracted into the ball of radius 2;
+        ``near``/``far`` in normalised units (far 1000: contracted radius 1.999)."""
+        return cls("contracted", CONTRACTED_AABB, float(near), float(far),
+                   center=tuple(float(c) for c in center), scale=float(scale))
+
+    @property
+    def is_contracted(self) -> bool:
+        """True for unbounded scenes: samples go through :meth:`to_field` and the marcher's growing steps."""
+        return self.kind == "contracted"
 
     @property
     def box_is_world(self) -> bool:
@@ -96,13 +122,29 @@ class RaySpace:
         directions; the identity (the same tensors) for the euclidean kind. Differentiable."""
         if self.kind == "euclidean":
             return rays_o, rays_d
+        if self.kind == "contracted":
+            return (rays_o - rays_o.new_tensor(self.center)) * self.scale, rays_d
         o, d = ndc_rays(rays_o, rays_d, self.focal, self.width, self.height, near=self.ndc_near)
         return o, torch.nn.functional.normalize(d, dim=-1)
 
+    def to_field(self, x: torch.Tensor) -> torch.Tensor:
+        """(..., 3) marched points (``o + t d`` of the rays ``apply`` returns) -> the field's input:
+        the contraction for the contracted kind, else the identity (the same tensor). Differentiable."""
+        if self.kind != "contracted":
+            return x
+        from ..contraction import contract
+
+        return contract(x)
+
     def to_world(self, x: torch.Tensor) -> torch.Tensor:
-        """(..., 3) points of this space -> world points (NDC's far plane z' = 1 maps to infinity)."""
+        """(..., 3) points of the field's space -> world points (NDC's far plane z' = 1 and the
+        contracted radius 2 map to infinity)."""
         if self.kind == "euclidean":
             return x
+        if self.kind == "contracted":
+            from ..contraction import uncontract
+
+            return uncontract(x) / self.scale + x.new_tensor(self.center)
         return world_from_ndc(x, self.focal, self.width, self.height, self.ndc_near)
 
 

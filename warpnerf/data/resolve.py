@@ -103,6 +103,7 @@ def load_scene(
     llff_holdout: int = 8,
     progress: bool = True,
     allow_rgb: bool = False,
+    unbounded: bool = False,
 ) -> Scene:
     """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
 
@@ -116,6 +117,8 @@ def load_scene(
         llff_factor: LLFF only (``images_<factor>``).
         llff_holdout: LLFF, COLMAP and transforms.json: every n-th view is a test view (unless
             the files name a split).
+        unbounded: COLMAP and transforms.json: a 360° capture with a distant background, trained
+            in a contracted ray space (the built-in unbounded scenes always are).
 
     Raises:
         DatasetError: unknown name (the message lists what exists) or any loader error.
@@ -135,12 +138,12 @@ def load_scene(
             from warpnerf.data.transforms_json import load_transforms_json
 
             return load_transforms_json(folder, downscale=downscale, holdout=llff_holdout,
-                                        white_background=white_background, name=name)
+                                        white_background=white_background, name=name, unbounded=unbounded)
         if layout == "colmap":
             from warpnerf.data.colmap import load_colmap
 
             return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
-                               name=name)
+                               name=name, unbounded=unbounded)
         from warpnerf.data.llff import load_llff
 
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)

@@ -88,6 +88,7 @@ def load_transforms_json(
     white_background: bool = True,
     normalize: bool = True,
     name: str | None = None,
+    unbounded: bool = False,
 ) -> Scene:
     """Load a single-``transforms.json`` scene folder (module docstring) into a Scene (kind "transforms").
 
@@ -118,4 +119,5 @@ def load_transforms_json(
     aabb_scale = meta.get("aabb_scale")
     return build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
                        downscale=downscale, white_background=white_background,
-                       aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize)
+                       aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize,
+                       unbounded=unbounded)

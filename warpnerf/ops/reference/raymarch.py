@@ -29,8 +29,12 @@ def march_rays(
     step_size: float,
     max_samples_per_ray: int = 1024,
     jitter: Optional[torch.Tensor] = None,
+    contract: bool = False,
 ) -> PackedSamples:
     """See :func:`warpnerf.ops.raymarch.march_rays`; results are identical."""
+    if contract:
+        return _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                                      max_samples_per_ray, jitter)
     lo, hi = aabb_floats(aabb)
     device = rays_o.device
     f32 = dict(dtype=torch.float32, device=device)
@@ -91,10 +95,11 @@ def march_rays_within_budget(
     max_samples_per_ray: int = 1024,
     jitter: Optional[torch.Tensor] = None,
     max_total_samples: Optional[int] = None,
+    contract: bool = False,
 ) -> tuple[PackedSamples, int]:
     """See :func:`warpnerf.ops.raymarch.march_rays_within_budget`; results are identical."""
     packed = march_rays(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
-                        max_samples_per_ray, jitter)
+                        max_samples_per_ray, jitter, contract)
     if max_total_samples is None:
         return packed, rays_o.shape[0]
     if int(max_total_samples) < 1:
@@ -107,3 +112,83 @@ def march_rays_within_budget(
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
     return PackedSamples(packed.ray_indices[:total], packed.t_starts[:total], packed.t_ends[:total], offsets,
                          counts), keep
+
+
+def _sqrt(x: torch.Tensor) -> torch.Tensor:
+    """Correctly rounded float32 sqrt, as the kernel's ``sqrtf``: torch's vectorised float32 sqrt
+    can be one ulp off; float64 sqrt rounded to float32 is exact (53 >= 2 * 24 + 2 bits)."""
+    return torch.sqrt(x.double()).float()
+
+
+def _contracted_step(o: torch.Tensor, d: torch.Tensor, t: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """kernels/raymarch.py ``contracted_step``, same float32 operation order."""
+    p = o + d * t[:, None]
+    r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1] + p[:, 2] * p[:, 2]
+    outside = r2 > 1.0
+    r2o = torch.where(outside, r2, torch.ones_like(r2))
+    r = _sqrt(r2o)
+    dr = (d[:, 0] * p[:, 0] + d[:, 1] * p[:, 1] + d[:, 2] * p[:, 2]) / r
+    a = dr / r2o
+    s = (2.0 - 1.0 / r) / r
+    b2 = torch.clamp_min(1.0 - dr * dr, 0.0)
+    return torch.where(outside, step / _sqrt(a * a + b2 * (s * s)), step.expand_as(r2))
+
+
+def _contract_point(p: torch.Tensor) -> torch.Tensor:
+    """kernels/raymarch.py ``contract_point``, same float32 operation order."""
+    r2 = p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1] + p[:, 2] * p[:, 2]
+    r = _sqrt(torch.where(r2 <= 1.0, torch.ones_like(r2), r2))
+    return torch.where((r2 <= 1.0)[:, None], p, p * ((2.0 - 1.0 / r) / r)[:, None])
+
+
+def _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                           max_samples_per_ray, jitter) -> PackedSamples:
+    """The contracted march, one step of every ray at a time (the steps are sequential per ray)."""
+    lo, hi = aabb_floats(aabb)
+    device = rays_o.device
+    f32 = dict(dtype=torch.float32, device=device)
+    res = int(occ_resolution)
+    if occ_bitfield is None:
+        res = 1
+        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
+    box_min = torch.tensor(lo, **f32)
+    grid_scale = torch.tensor([res / (h - l) for l, h in zip(lo, hi)], **f32)
+    near_t, far_t, step = (torch.tensor(float(v), **f32) for v in (near, far, step_size))
+    num_rays = rays_o.shape[0]
+    t0 = near_t.expand(num_rays).clone()
+    t1 = far_t.expand(num_rays).clone()
+    active = (torch.isfinite(rays_o).all(1) & torch.isfinite(rays_d).all(1) & (rays_d != 0.0).any(1)
+              & torch.isfinite(t0) & torch.isfinite(t1) & (t1 > t0))
+    u = jitter if jitter is not None else torch.zeros(num_rays, **f32)
+    ts = t0 + u * _contracted_step(rays_o, rays_d, t0, step)
+    n = torch.zeros(num_rays, dtype=torch.int64, device=device)
+    out_ray, out_ts, out_te, out_k = [], [], [], []
+    k = 0
+    while k < MAX_STEPS_PER_RAY:
+        active &= (n < int(max_samples_per_ray)) & (ts < t1)
+        if not bool(active.any()):
+            break
+        te = torch.minimum(ts + _contracted_step(rays_o, rays_d, ts, step), t1)
+        mid = 0.5 * (ts + te)
+        g = (_contract_point(rays_o + rays_d * mid[:, None]) - box_min) * grid_scale
+        inside = ((g >= 0.0) & (g < float(res))).all(-1)
+        cell = torch.floor(torch.where(inside[:, None], g, torch.zeros_like(g))).long()
+        flat = (cell[:, 0] * res + cell[:, 1]) * res + cell[:, 2]
+        keep = active & inside & (occ_bitfield[flat] != 0)
+        idx = keep.nonzero().squeeze(1)
+        out_ray.append(idx)
+        out_ts.append(ts[idx])
+        out_te.append(te[idx])
+        out_k.append(torch.full_like(idx, k))
+        n += keep.long()
+        ts = torch.where(active, te, ts)
+        k += 1
+    if out_ray:
+        ray, t_s, t_e, kk = (torch.cat(v) for v in (out_ray, out_ts, out_te, out_k))
+        order = torch.argsort(ray * MAX_STEPS_PER_RAY + kk)  # packed by ray, then along the ray
+        ray, t_s, t_e = ray[order], t_s[order], t_e[order]
+    else:
+        ray, t_s, t_e = torch.zeros(0, dtype=torch.int64, device=device), torch.zeros(0, **f32), torch.zeros(0, **f32)
+    counts = n.int()
+    offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
+    return PackedSamples(ray.int(), t_s, t_e, offsets, counts)
