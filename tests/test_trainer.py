@@ -282,6 +282,38 @@ def test_render_image_with_a_small_sample_budget_matches_an_unbounded_one(traine
     assert torch.allclose(full["opacity"], small["opacity"], atol=1e-5)
 
 
+def test_early_ray_termination_changes_pixels_by_less_than_its_threshold(trained_full):
+    """Issue 14: without autograd, samples behind transmittance < 1e-4 are not evaluated; the image
+    is the one with every sample evaluated up to that threshold, from fewer field evaluations."""
+    t = trained_full
+    v = t.views
+    w = t.level_weights(t.cfg.iters)
+    calls = []
+    geometry = t.field.geometry
+
+    def counting(x, lw=None):
+        calls.append(x.shape[0])
+        return geometry(x, lw)
+
+    t.field.geometry = counting
+    try:
+        stop = t.renderer.render_image(v.c2w[0], v.height, v.width, v.focal, v.cx, v.cy, w)
+        evaluated = sum(calls)
+        calls.clear()
+        t.renderer.stop_transmittance = 0.0
+        every = t.renderer.render_image(v.c2w[0], v.height, v.width, v.focal, v.cx, v.cy, w)
+        marched = sum(calls)
+    finally:
+        t.renderer.stop_transmittance = 1e-4
+        del t.field.geometry
+    assert evaluated < marched, (evaluated, marched)
+    # a skipped sample has weight < 1e-4 and there are a few hundred per ray at most
+    assert float((stop["rgb"] - every["rgb"]).abs().max()) < 5e-3
+    assert float((stop["opacity"] - every["opacity"]).abs().max()) < 5e-3
+    # and on average far less than that
+    assert float((stop["rgb"] - every["rgb"]).abs().mean()) < 1e-4
+
+
 def test_peak_memory_over_budget_is_a_clear_error():
     from warpnerf.trainer import TrainingError
 
@@ -340,4 +372,10 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
 
     scene = SimpleNamespace(kind=kind)
     assert PoseTask(TrainConfig(task="pose")).noise_sigmas(scene) == (sigma, sigma)
+    # the pose rates follow the noise (tuned at 0.15): Adam moves ~lr per step whatever the error
+    trainer = SimpleNamespace(scene=scene, train_c2w=torch.eye(4)[:3][None].repeat(3, 1, 1), device="cpu")
+    for by_noise, scale in ((True, sigma / 0.15), (False, 1.0)):
+        task = PoseTask(TrainConfig(task="pose", pose_lr=3e-3, pose_lr_by_noise=by_noise))
+        task.setup(trainer)
+        assert task.optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * scale)
     assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)

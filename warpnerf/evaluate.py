@@ -94,15 +94,17 @@ def evaluate(trainer: "Trainer", out_dir: Optional[str] = None, progress: bool =
         ssims.append(M.ssim(pred, gt))
         lpips.append(M.lpips_or_none(pred, gt))
         if views.depth is not None:
-            # ground truth is camera-z depth (0 = background); ours is distance along the unit ray
+            # ground truth is camera-z depth (0 = background); ours is distance along the unit ray in
+            # the ray space's units (a contracted space's are world units times its scale)
             fg = views.depth[k] > 0
-            pred_z = img["depth"].cpu() * z_scale
+            pred_z = img["depth"].cpu() * z_scale / trainer.scene.ray_space.scale
             depth_errs.append(float((pred_z[fg] - views.depth[k][fg]).abs().mean()) if fg.any() else 0.0)
         if out_dir:
             save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}.png"),
                      torch.cat([pred, gt], dim=1))
             save_png(os.path.join(out_dir, "renders", f"test_{views.ids[k]:03d}_depth.png"),
-                     depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu()))
+                     depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu(),
+                                  disparity=trainer.scene.ray_space.is_contracted))
     return {
         "psnr": float(np.mean(psnrs)),
         "ssim": float(np.mean(ssims)),
@@ -128,9 +130,12 @@ def save_png(path: str, img: torch.Tensor) -> None:
     imageio.imwrite(path, (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
 
 
-def depth_to_rgb(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
-    """Grey-scale depth (near = bright) on a white background, (H, W, 3)."""
+def depth_to_rgb(depth: torch.Tensor, opacity: torch.Tensor, disparity: bool = False) -> torch.Tensor:
+    """Grey-scale depth (near = bright) on a white background, (H, W, 3). ``disparity``: shade
+    1 / depth instead (unbounded scenes, whose far background would flatten everything else)."""
     valid = opacity > 0.5
+    if disparity:
+        depth = -1.0 / depth.clamp_min(1e-6)  # increasing with depth, like depth
     if valid.any():
         lo, hi = depth[valid].min(), depth[valid].max()
         g = 1.0 - (depth - lo) / (hi - lo).clamp_min(1e-6)

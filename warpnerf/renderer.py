@@ -66,6 +66,9 @@ class RenderOutput:
 class Renderer:
     """Volume renderer over an occupancy grid.
 
+    Without autograd (``render_image``, evaluation, the viewer) rays stop early: samples behind
+    transmittance < ``stop_transmittance`` are not evaluated (``_geometry_front_to_back``).
+
     Color is evaluated only where it can matter: after the density pass, a no-grad composite
     finds each sample's weight, and samples with weight <= ``color_weight_eps`` (empty space in
     front of a surface, or hidden behind it) get color 0 without running the color MLP. Their
@@ -84,7 +87,7 @@ class Renderer:
 
     def __init__(self, field, occupancy: OccupancyGrid, ray_space: RaySpace, step: float,
                  background=(1.0, 1.0, 1.0), max_samples_per_ray: int = 1024, color_weight_eps: float = 1e-4,
-                 sample_budget: int = 1 << 18):
+                 sample_budget: int = 1 << 18, stop_transmittance: float = 1e-4):
         self.field = field
         self.occupancy = occupancy
         self.ray_space = ray_space
@@ -94,6 +97,8 @@ class Renderer:
         self.color_weight_eps = float(color_weight_eps)
         # packed samples per render_rays call at most (memory bound); one ray must always fit
         self.sample_budget = max(int(sample_budget), self.max_samples_per_ray)
+        # without autograd, a ray's samples behind transmittance < this are not evaluated (0 = off)
+        self.stop_transmittance = float(stop_transmittance)
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
                     jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None) -> RenderOutput:
@@ -113,12 +118,49 @@ class Renderer:
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
         x = self.ray_space.to_field(gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray))
-        sigma, geo = self.field.geometry(x, level_weights)
+        if self.stop_transmittance > 0 and not torch.is_grad_enabled():
+            sigma, geo = self._geometry_front_to_back(x, ray, packed, level_weights)
+        else:
+            sigma, geo = self.field.geometry(x, level_weights)
         rgb = self._sample_colors(sigma, geo, view_dirs, ray, packed)
         bg = self.background if background is None else background
         color, opacity, depth = composite_rays(sigma, rgb, packed.t_starts, packed.t_ends, packed.ray_offsets,
                                                packed.ray_counts, bg)
         return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), int(ray.shape[0]), n_marched)
+
+    def _geometry_front_to_back(self, x, ray, packed, level_weights):
+        """``field.geometry`` without autograd, skipping samples hidden behind opaque ones
+        (instant-ngp's early ray termination, done in rounds over the packed samples).
+
+        Round j evaluates the samples of rank [a_j, a_{j+1}) along their ray (a = 0, 4, 8, 16,
+        32, ...: doubling) of the rays still alive, then adds their optical depth sigma * dt to
+        the ray's; a ray dies once its transmittance exp(-depth) < ``stop_transmittance``. Samples
+        never evaluated get density 0 and features 0: each would have had weight below
+        ``stop_transmittance``, so a pixel changes by less than that times its sample count.
+        """
+        num = x.shape[0]
+        if num == 0:
+            return self.field.geometry(x, level_weights)
+        rank = torch.arange(num, device=x.device, dtype=torch.int32) - packed.ray_offsets.index_select(0, ray)
+        dt = packed.t_ends - packed.t_starts
+        depth = torch.zeros(packed.ray_counts.shape[0], dtype=torch.float32, device=x.device)
+        max_depth = -math.log(self.stop_transmittance)
+        sigma = geo = None
+        lo, hi, n_max = 0, 4, int(packed.ray_counts.max())
+        while lo < n_max:
+            alive = depth < max_depth
+            pick = torch.nonzero((rank >= lo) & (rank < hi) & alive.index_select(0, ray)).squeeze(1)
+            if pick.numel():
+                s, g = self.field.geometry(x.index_select(0, pick), level_weights)
+                if sigma is None:
+                    sigma = torch.zeros(num, dtype=s.dtype, device=x.device)
+                    geo = torch.zeros(num, g.shape[1], dtype=g.dtype, device=x.device)
+                sigma[pick], geo[pick] = s, g
+                depth.index_add_(0, ray.index_select(0, pick), s.float() * dt.index_select(0, pick))
+            elif not bool(alive.any()):
+                break
+            lo, hi = hi, hi * 2
+        return sigma, geo
 
     def step_at(self, x: torch.Tensor) -> torch.Tensor:
         """(N,) marching step (along the marched ray) at (N, 3) points of the field's space: ``step``;

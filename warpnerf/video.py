@@ -269,7 +269,8 @@ def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool
                                             cams.cy, weights)
         rgb = img["rgb"].clamp(0, 1).cpu()
         if depth:
-            rgb = torch.cat([rgb, depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu())], dim=1)
+            rgb = torch.cat([rgb, depth_to_rgb(img["depth"].cpu(), img["opacity"].cpu(),
+                                               disparity=trainer.scene.ray_space.is_contracted)], dim=1)
         out.append((rgb.numpy() * 255 + 0.5).astype(np.uint8))
     return out
 
