@@ -35,17 +35,10 @@ def march_rays(
     if contract:
         return _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
                                       max_samples_per_ray, jitter)
-    lo, hi = aabb_floats(aabb)
     device = rays_o.device
     f32 = dict(dtype=torch.float32, device=device)
-    res = int(occ_resolution)
-    if occ_bitfield is None:
-        res = 1
-        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
-    # scalars as float32 tensors: the kernel receives them rounded to float32
-    box_min, box_max = torch.tensor(lo, **f32), torch.tensor(hi, **f32)
-    grid_scale = torch.tensor([res / (h - l) for l, h in zip(lo, hi)], **f32)
-    near_t, far_t, step = (torch.tensor(float(v), **f32) for v in (near, far, step_size))
+    res, occ_bitfield, box_min, box_max, grid_scale, near_t, far_t, step = _kernel_scalars(
+        aabb, occ_bitfield, occ_resolution, near, far, step_size, device)
     num_rays = rays_o.shape[0]
 
     t0 = near_t.expand(num_rays).clone()
@@ -71,16 +64,38 @@ def march_rays(
     te = torch.minimum(ts + step, t1[:, None])
     mid = 0.5 * (ts + te)
     g = (rays_o[:, None, :] + rays_d[:, None, :] * mid[..., None] - box_min) * grid_scale
-    inside = ((g >= 0.0) & (g < float(res))).all(-1)
-    cell = torch.floor(torch.where(inside[..., None], g, torch.zeros_like(g))).long()
-    flat_cell = (cell[..., 0] * res + cell[..., 1]) * res + cell[..., 2]
-    keep = hit[:, None] & (ts < t1[:, None]) & inside & (occ_bitfield[flat_cell] != 0)
+    keep = hit[:, None] & (ts < t1[:, None]) & _occupied(g, res, occ_bitfield)
     keep &= torch.cumsum(keep.int(), 1) <= int(max_samples_per_ray)
 
     counts = keep.sum(1, dtype=torch.int32)
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
     ray_ids, step_ids = keep.nonzero(as_tuple=True)
     return PackedSamples(ray_ids.int(), ts[ray_ids, step_ids], te[ray_ids, step_ids], offsets, counts)
+
+
+def _kernel_scalars(aabb, occ_bitfield, occ_resolution, near, far, step_size, device):
+    """The kernels' scalar inputs as float32 tensors (the kernel receives them rounded to float32),
+    and the one always-occupied cell standing in for a missing grid:
+    (res, bitfield, box_min, box_max, grid_scale, near, far, step)."""
+    lo, hi = aabb_floats(aabb)
+    f32 = dict(dtype=torch.float32, device=device)
+    res = int(occ_resolution)
+    if occ_bitfield is None:
+        res = 1
+        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
+    box_min, box_max = torch.tensor(lo, **f32), torch.tensor(hi, **f32)
+    grid_scale = torch.tensor([res / (h - l) for l, h in zip(lo, hi)], **f32)
+    near_t, far_t, step = (torch.tensor(float(v), **f32) for v in (near, far, step_size))
+    return res, occ_bitfield, box_min, box_max, grid_scale, near_t, far_t, step
+
+
+def _occupied(g: torch.Tensor, res: int, occ_bitfield: torch.Tensor) -> torch.Tensor:
+    """(...) bool: grid coordinates ``g`` (..., 3) lie in [0, res)^3 and in an occupied cell
+    (kernels/occupancy.py ``cell_index``)."""
+    inside = ((g >= 0.0) & (g < float(res))).all(-1)
+    cell = torch.floor(torch.where(inside[..., None], g, torch.zeros_like(g))).long()
+    flat = (cell[..., 0] * res + cell[..., 1]) * res + cell[..., 2]
+    return inside & (occ_bitfield[flat] != 0)
 
 
 def march_rays_within_budget(
@@ -144,16 +159,10 @@ def _contract_point(p: torch.Tensor) -> torch.Tensor:
 def _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
                            max_samples_per_ray, jitter) -> PackedSamples:
     """The contracted march, one step of every ray at a time (the steps are sequential per ray)."""
-    lo, hi = aabb_floats(aabb)
     device = rays_o.device
     f32 = dict(dtype=torch.float32, device=device)
-    res = int(occ_resolution)
-    if occ_bitfield is None:
-        res = 1
-        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
-    box_min = torch.tensor(lo, **f32)
-    grid_scale = torch.tensor([res / (h - l) for l, h in zip(lo, hi)], **f32)
-    near_t, far_t, step = (torch.tensor(float(v), **f32) for v in (near, far, step_size))
+    res, occ_bitfield, box_min, box_max, grid_scale, near_t, far_t, step = _kernel_scalars(
+        aabb, occ_bitfield, occ_resolution, near, far, step_size, device)
     num_rays = rays_o.shape[0]
     t0 = near_t.expand(num_rays).clone()
     t1 = far_t.expand(num_rays).clone()
@@ -171,10 +180,7 @@ def _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, n
         te = torch.minimum(ts + _contracted_step(rays_o, rays_d, ts, step), t1)
         mid = 0.5 * (ts + te)
         g = (_contract_point(rays_o + rays_d * mid[:, None]) - box_min) * grid_scale
-        inside = ((g >= 0.0) & (g < float(res))).all(-1)
-        cell = torch.floor(torch.where(inside[:, None], g, torch.zeros_like(g))).long()
-        flat = (cell[:, 0] * res + cell[:, 1]) * res + cell[:, 2]
-        keep = active & inside & (occ_bitfield[flat] != 0)
+        keep = active & _occupied(g, res, occ_bitfield)
         idx = keep.nonzero().squeeze(1)
         out_ray.append(idx)
         out_ts.append(ts[idx])
