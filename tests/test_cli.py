@@ -97,3 +97,21 @@ def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
     assert finished_metrics(cfg)["psnr"] == pytest.approx(m["psnr"])
     cfg.iters += 1
     assert finished_metrics(cfg) is None
+
+
+def test_threads_option_bounds_torch_too():
+    """`--threads 1` must hold torch's intra-op pool to one thread as well: two runs started side by side
+    with --threads 1 each otherwise kept four busy threads on two cores (each ran ~3x slower than half speed)."""
+    import argparse
+
+    import torch
+
+    from warpnerf import cli, device
+
+    before = (device.num_threads(), torch.get_num_threads())
+    try:
+        assert cli._setup_device(argparse.Namespace(device="cpu", threads=1)) == "cpu"
+        assert (device.num_threads(), torch.get_num_threads()) == (1, 1)
+    finally:
+        device.set_num_threads(before[0])
+        torch.set_num_threads(before[1])

@@ -20,7 +20,7 @@ class UserError(Exception):
 
 def _add_device(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (cuda if Warp sees one, else cpu), cpu, cuda, cuda:N")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for Warp launches (default: min(2, cores))")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads for Warp launches and torch ops (default: min(2, cores))")
 
 
 def _setup_device(args) -> str:
@@ -28,7 +28,7 @@ def _setup_device(args) -> str:
 
     try:
         if args.threads is not None:
-            device.set_num_threads(args.threads)
+            device.limit_cpu_threads(args.threads)
         return device.resolve_device(args.device)
     except ValueError as e:
         raise UserError(str(e)) from e

@@ -147,7 +147,7 @@ class TrainConfig:
     out: str = ""  # run folder ('': runs/<scene>_<task>[_g2fr])
     seed: int = 0  # random seed (views, pose noise, ray sampling, initialisation)
     device: str = "auto"  # auto (cuda if Warp sees one, else cpu) | cpu | cuda | cuda:N
-    threads: Optional[int] = None  # CPU threads for Warp launches (unset: $WARPNERF_THREADS or min(2, cores))
+    threads: Optional[int] = None  # CPU threads for Warp launches and torch ops (unset: $WARPNERF_THREADS or min(2, cores))
     log_every: int = 50  # steps between progress-bar metric refreshes
     save_every: int = 500  # steps between periodic checkpoints (0: only at the end)
     allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)

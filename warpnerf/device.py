@@ -87,6 +87,18 @@ def set_num_threads(n: int) -> None:
         _POOL = None
 
 
+def limit_cpu_threads(n: int) -> None:
+    """``--threads N``: N threads for Warp chunks *and* for torch's intra-op pool (the MLPs, Adam).
+
+    Without the second, two runs started side by side with ``--threads 1`` each still ran torch on
+    every core: four busy threads on two cores made each run ~3x slower than half speed.
+    """
+    import torch
+
+    set_num_threads(n)
+    torch.set_num_threads(int(n))
+
+
 def run_chunks(tasks: Sequence[Callable[[], object]]) -> list:
     """Run independent callables, in parallel on CPU when more than one thread is allowed."""
     global _POOL

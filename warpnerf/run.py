@@ -191,7 +191,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
 
     try:
         if cfg.threads is not None:
-            devmod.set_num_threads(cfg.threads)
+            devmod.limit_cpu_threads(cfg.threads)
         device = devmod.resolve_device(cfg.device)
     except ValueError as e:
         raise ConfigError(str(e)) from None
