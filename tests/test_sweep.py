@@ -74,6 +74,20 @@ def test_spec_expands_into_runs_and_rejects_bad_keys(tmp_path):
             expand(load_spec(str(spec_path)))
 
 
+@pytest.mark.parametrize("name", ["nerf_synthetic_pose", "lego_fewshot_curve"])
+def test_shipped_specs_expand(name):
+    """The specs under configs/sweeps load by name and expand into valid run configurations."""
+    from warpnerf.sweep import shipped_spec
+
+    path = shipped_spec(name)
+    assert path is not None, name
+    runs = expand(load_spec(path))
+    assert runs and all(r.cfg.video_frames == 0 for r in runs)
+    if name == "lego_fewshot_curve":  # issue #10: both arms, 20k steps, held-out PSNR along the way
+        assert sorted(r.cfg.g2fr for r in runs) == [False, True]
+        assert all(r.cfg.iters == 20000 and r.cfg.heldout_every == 1000 for r in runs)
+
+
 def test_ray_backend_without_ray_says_how_to_install(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     spec = SweepSpec(scenes=["chair"], tasks=["fewshot"], out=str(tmp_path / "o"))
