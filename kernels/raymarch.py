@@ -72,6 +72,26 @@ def ray_aabb_interval(o: wp.vec3, d: wp.vec3, aabb_min: wp.vec3, aabb_max: wp.ve
     return wp.vec2(t0, t1)
 
 
+@wp.func
+def sample_slots(fill: int, r: int, max_samples: int, ray_offsets: wp.array(dtype=wp.int32),
+                 ray_counts: wp.array(dtype=wp.int32)):
+    """(first packed slot, most samples) of ray r: the count pass may keep up to ``max_samples``;
+    the fill pass writes from the ray's offset and stops at its counted last sample."""
+    if fill != 0:
+        return ray_offsets[r], ray_counts[r]
+    return 0, max_samples
+
+
+@wp.func
+def store_sample(fill: int, slot: int, r: int, ts: float, te: float, ray_indices: wp.array(dtype=wp.int32),
+                 t_starts: wp.array(dtype=float), t_ends: wp.array(dtype=float)):
+    """Fill pass: write sample [ts, te] of ray r at packed ``slot`` (the count pass writes nothing)."""
+    if fill != 0:
+        ray_indices[slot] = r
+        t_starts[slot] = ts
+        t_ends[slot] = te
+
+
 @wp.kernel
 def march_rays(
     first_ray: int,
@@ -109,12 +129,7 @@ def march_rays(
         u = float(0.0)
         if has_jitter != 0:
             u = jitter[r]
-        base = int(0)
-        limit = max_samples
-        if fill != 0:
-            # the fill pass stops at the ray's last sample instead of marching on to t1
-            base = ray_offsets[r]
-            limit = ray_counts[r]
+        base, limit = sample_slots(fill, r, max_samples, ray_offsets, ray_counts)
         k = int(0)
         while n < limit and k < MAX_STEPS:
             ts = t0 + (float(k) + u) * step
@@ -123,10 +138,7 @@ def march_rays(
             te = wp.min(ts + step, t1)
             c = cell_index(grid_coords(o + d * (0.5 * (ts + te)), aabb_min, grid_scale), res)
             if c >= 0 and occ_bitfield[c] != wp.uint8(0):
-                if fill != 0:
-                    ray_indices[base + n] = r
-                    t_starts[base + n] = ts
-                    t_ends[base + n] = te
+                store_sample(fill, base + n, r, ts, te, ray_indices, t_starts, t_ends)
                 n += 1
             k += 1
     if fill == 0:
@@ -193,21 +205,14 @@ def march_rays_contracted(
         u = float(0.0)
         if has_jitter != 0:
             u = jitter[r]
-        base = int(0)
-        limit = max_samples
-        if fill != 0:
-            base = ray_offsets[r]
-            limit = ray_counts[r]
+        base, limit = sample_slots(fill, r, max_samples, ray_offsets, ray_counts)
         ts = t0 + u * contracted_step(o, d, t0, step)
         k = int(0)
         while n < limit and k < MAX_STEPS and ts < t1:
             te = wp.min(ts + contracted_step(o, d, ts, step), t1)
             c = cell_index(grid_coords(contract_point(o + d * (0.5 * (ts + te))), aabb_min, grid_scale), res)
             if c >= 0 and occ_bitfield[c] != wp.uint8(0):
-                if fill != 0:
-                    ray_indices[base + n] = r
-                    t_starts[base + n] = ts
-                    t_ends[base + n] = te
+                store_sample(fill, base + n, r, ts, te, ray_indices, t_starts, t_ends)
                 n += 1
             ts = te
             k += 1
