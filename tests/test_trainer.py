@@ -358,7 +358,8 @@ def test_unbounded_builtin_scene_trains_background_included(tmp_path, model):
     flat = -10 * math.log10(float(((scene.test.images[::40][:3] - view.mean((0, 1))) ** 2).mean()))
     # measured: 19.73 dB (ngp), 19.09 (mtrf) against 16.70 for the mean colour (32 px: the ground's
     # veins are a pixel wide)
-    assert res["psnr"] > flat + 2.0, (res["psnr"], flat)
+    margin = {"ngp": 2.5, "mtrf": 2.0}[model]
+    assert res["psnr"] > flat + margin, (res["psnr"], flat)
     img = trainer.renderer.render_image(scene.test.c2w[0], 32, 32, scene.test.focal, scene.test.cx, scene.test.cy)
     assert float(img["opacity"].min()) > 0.99  # measured 0.9999: the background is the field's, not the renderer's
     assert trainer.occupancy.occupied_fraction() > 0.0

@@ -138,7 +138,7 @@ class TrainConfig:
     pose_noise_trans: Optional[float] = None  # pose: translation sigma, overrides pose_noise
     pose_lr: float = 1e-3  # pose: Adam lr of the se(3) corrections
     pose_lr_final: float = 1e-5  # pose: lr at the last step (exponential)
-    pose_lr_by_noise: bool = True  # pose: scale both rates by max(noise sigmas) / 0.15, the sigma they are tuned at (Adam moves ~lr per step)
+    pose_lr_by_noise: bool = True  # pose: scale both rates by min(max(noise sigmas) / 0.15, 1), 0.15 being the sigma they are tuned at (Adam moves ~lr per step)
     pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
     # --- evaluation and output ---
     eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)

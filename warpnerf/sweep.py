@@ -269,8 +269,7 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
 
         if threads:
             old_threads = (devmod.num_threads(), torch.get_num_threads())
-            devmod.set_num_threads(int(threads))
-            torch.set_num_threads(int(threads))
+            devmod.limit_cpu_threads(int(threads))
         cfg = TrainConfig(**cfg_values)
         if log_path:
             os.makedirs(os.path.dirname(log_path) or ".", exist_ok=True)
