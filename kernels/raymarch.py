@@ -218,3 +218,83 @@ def march_rays_contracted(
             k += 1
     if fill == 0:
         ray_counts[r] = n
+
+
+@wp.kernel
+def march_rays_window(
+    first_ray: int,
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+    contract: int,
+    aabb_min: wp.vec3,
+    aabb_max: wp.vec3,
+    grid_scale: wp.vec3,
+    occ_bitfield: wp.array(dtype=wp.uint8),
+    res: int,
+    near: float,
+    far: float,
+    step: float,
+    max_samples: int,
+    window: int,
+    ray_k: wp.array(dtype=wp.int32),
+    ray_t: wp.array(dtype=float),
+    ray_taken: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+):
+    """The next at most ``window`` samples of each ray, resuming where its last window stopped:
+    the samples :func:`march_rays` (``contract`` = 0) or :func:`march_rays_contracted` (= 1)
+    emits without jitter, ``window`` at a time (inference renders ray by ray in rounds and stops
+    a ray once it is opaque, instead of marching it to the end).
+
+    Per-ray state, read and updated: ``ray_k`` the next candidate step (-1 once the ray is
+    finished: past its interval, out of steps, or ``max_samples`` taken), ``ray_t`` the next
+    sample's start (contracted march only; the uniform one recomputes it from k), ``ray_taken``
+    the samples emitted so far. Writes ``counts[r]`` samples at ``[r * window, ...)``."""
+    r = first_ray + wp.tid()
+    k = int(ray_k[r])
+    n = int(0)
+    if k >= 0:
+        o = rays_o[r]
+        d = rays_d[r]
+        t0 = near
+        t1 = far
+        ok = finite3(o) and finite3(d) and (d[0] != 0.0 or d[1] != 0.0 or d[2] != 0.0)
+        if contract == 0:
+            span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
+            t0 = span[0]
+            t1 = span[1]
+        if not (ok and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0):
+            k = -1
+        else:
+            taken = int(ray_taken[r])
+            limit = wp.min(window, max_samples - taken)
+            ts = ray_t[r]
+            while n < limit:
+                if contract == 0:
+                    ts = t0 + float(k) * step
+                if k >= MAX_STEPS or ts >= t1:
+                    k = -1
+                    break
+                te = float(0.0)
+                p = wp.vec3(0.0)
+                if contract == 0:
+                    te = wp.min(ts + step, t1)
+                    p = o + d * (0.5 * (ts + te))
+                else:
+                    te = wp.min(ts + contracted_step(o, d, ts, step), t1)
+                    p = contract_point(o + d * (0.5 * (ts + te)))
+                c = cell_index(grid_coords(p, aabb_min, grid_scale), res)
+                if c >= 0 and occ_bitfield[c] != wp.uint8(0):
+                    t_starts[r * window + n] = ts
+                    t_ends[r * window + n] = te
+                    n += 1
+                ts = te
+                k += 1
+            if taken + n >= max_samples:
+                k = -1
+            ray_t[r] = ts
+            ray_taken[r] = taken + n
+    ray_k[r] = k
+    counts[r] = n

@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from warpnerf.device import num_threads, set_num_threads
-from warpnerf.ops.raymarch import march_rays
+from warpnerf.ops.raymarch import MarchState, march_rays, march_rays_window
 from warpnerf.ops.reference.raymarch import march_rays as march_rays_ref
+from warpnerf.ops.reference.raymarch import march_rays_window as march_rays_window_ref
 
 AABB = (-1.5, -1.0, -0.5, 1.5, 1.25, 1.0)  # not a cube: catches axis mix-ups
 RES = 8
@@ -301,3 +302,73 @@ def test_contracted_grid_cells_are_looked_up_in_contracted_space():
     assert bool(((cc[:, 0] >= 1.5) & (cc[:, 0] < 2.0)).all())
     # world distances: from |contract| = 1.5 (r = 2) onwards
     assert float(mid.min()) > 0.9 * float(uncontract(torch.tensor([[1.5, 0.0, 0.0]])).norm())
+
+
+def march_in_windows(march, origins, dirs, window, args, kwargs):
+    """Every window of every ray until all are finished: per ray, the concatenated (t_start,
+    t_end) lists, and the list of per-window (t_starts, t_ends, counts, state) results."""
+    state = MarchState.start(origins.shape[0], args[3], origins.device)
+    per_ray = [[] for _ in range(origins.shape[0])]
+    rounds = []
+    while not bool(state.finished.all()):
+        ts, te, counts = march(origins, dirs, state, window, *args, **kwargs)
+        rounds.append((ts, te, counts, MarchState(*(v.clone() for v in state))))
+        for r in torch.nonzero(counts).squeeze(1).tolist():
+            n = int(counts[r])
+            per_ray[r] += list(zip(ts[r, :n].tolist(), te[r, :n].tolist()))
+        assert len(rounds) < 1000
+    return per_ray, rounds
+
+
+@pytest.mark.parametrize("contract", [False, True])
+@pytest.mark.parametrize("window,cap", [(1, 1024), (3, 1024), (4, 7)])
+def test_window_march_yields_the_full_march_and_matches_its_twin(contract, window, cap):
+    """Marching window after window gives exactly march_rays' samples (no jitter), and the
+    kernel and its twin agree on every window's samples, counts and resume state."""
+    if contract:
+        origins, dirs, bitfield, _ = contracted_rays(2, 96)
+        args = (CONTRACTED_BOX, bitfield, RES, 0.05, 1000.0, 0.02, cap)
+    else:
+        origins, dirs, bitfield, _ = random_rays(2, 96)
+        args = (AABB, bitfield, RES, 0.3, 3.5, 0.02, cap)
+    kwargs = dict(contract=contract)
+    full = march_rays(origins, dirs, *args, **kwargs)
+    per_ray, rounds = march_in_windows(march_rays_window, origins, dirs, window, args, kwargs)
+    assert full.t_starts.numel() > 100
+    for r in range(origins.shape[0]):
+        lo, n = int(full.ray_offsets[r]), int(full.ray_counts[r])
+        assert per_ray[r] == list(zip(full.t_starts[lo:lo + n].tolist(), full.t_ends[lo:lo + n].tolist())), r
+    per_ray_ref, rounds_ref = march_in_windows(march_rays_window_ref, origins, dirs, window, args, kwargs)
+    assert len(rounds_ref) == len(rounds)
+    for (ts, te, counts, state), (ts_r, te_r, counts_r, state_r) in zip(rounds, rounds_ref):
+        assert torch.equal(counts, counts_r)
+        valid = torch.arange(window)[None, :] < counts[:, None].long()
+        assert torch.equal(ts[valid], ts_r[valid]) and torch.equal(te[valid], te_r[valid])
+        assert torch.equal(state.k, state_r.k) and torch.equal(state.taken, state_r.taken)
+
+
+def test_window_march_resumes_only_rays_not_finished():
+    """A finished ray (k = -1) gets no samples and keeps its state; a subset of rays marched
+    with ``MarchState.select`` continues where it stopped."""
+    origins, dirs, bitfield, _ = random_rays(3, 64)
+    args = (AABB, bitfield, RES, 0.3, 3.5, 0.02)
+    state = MarchState.start(64, 0.3, origins.device)
+    march_rays_window(origins, dirs, state, 2, *args)
+    state.k[:32] = -1
+    before = MarchState(*(v.clone() for v in state))
+    _, _, counts = march_rays_window(origins, dirs, state, 2, *args)
+    assert int(counts[:32].sum()) == 0 and torch.equal(state.k[:32], before.k[:32])
+    assert torch.equal(state.taken[:32], before.taken[:32])
+    pick = torch.arange(32, 64)
+    sub = before.select(pick)
+    ts_sub, _, counts_sub = march_rays_window(origins[pick], dirs[pick], sub, 2, *args)
+    assert torch.equal(counts_sub, counts[32:]) and torch.equal(sub.k, state.k[32:])
+
+
+def test_window_march_bad_inputs_raise():
+    origins, dirs, bitfield, _ = random_rays(4, 8)
+    state = MarchState.start(8, 0.3, origins.device)
+    with pytest.raises(ValueError, match="window must be >= 1"):
+        march_rays_window(origins, dirs, state, 0, AABB, bitfield, RES, 0.3, 3.5, 0.02)
+    with pytest.raises(ValueError, match="state.k"):
+        march_rays_window(origins, dirs, MarchState.start(7, 0.3, "cpu"), 2, AABB, bitfield, RES, 0.3, 3.5, 0.02)

@@ -15,7 +15,8 @@ import torch
 from ..device import init_warp
 from .launch import aabb_floats, as_warp, launch_over_rays
 
-__all__ = ["march_rays", "march_rays_within_budget", "PackedSamples", "rays_within_budget"]
+__all__ = ["march_rays", "march_rays_within_budget", "march_rays_window", "MarchState", "PackedSamples",
+           "rays_within_budget"]
 
 
 # candidate steps one ray may take at most (= kernels/raymarch.py MAX_STEPS_PER_RAY, kept here so the
@@ -115,25 +116,9 @@ def march_rays_within_budget(
     ``(samples, n)``: rays [0, n) were marched (n = R without a cap); callers that must not lose
     rays march the rest in another call.
     """
-    lo, hi = aabb_floats(aabb)
     _check_rays(rays_o, rays_d, jitter)
-    res = _check_grid(occ_bitfield, occ_resolution, rays_o.device)
-    near, far, step_size = float(near), float(far), float(step_size)
-    if not (step_size > 0.0 and near == near and far == far and near <= far):
-        raise ValueError(
-            f"march_rays: need step_size > 0 and near <= far, got step_size={step_size}, near={near}, far={far}"
-        )
-    if contract and far == float("inf"):
-        raise ValueError("march_rays: a contracted march needs a finite far bound")
-    # contracted: steps of one step_size along the line's contracted image, a few units long
-    # (up to 4.2 measured on random rays, tests/test_raymarch.py); 8 leaves room
-    diagonal = 8.0 if contract else sum((h - l) ** 2 for l, h in zip(lo, hi)) ** 0.5
-    if diagonal / step_size > MAX_STEPS_PER_RAY:
-        raise ValueError(f"march_rays: step_size {step_size} needs more than {MAX_STEPS_PER_RAY} steps along the box "
-                         f"diagonal {diagonal:.4g}; use a step of at least {diagonal / MAX_STEPS_PER_RAY:.3g}")
-    if int(max_samples_per_ray) < 1:
-        raise ValueError(f"march_rays: max_samples_per_ray must be >= 1, got {max_samples_per_ray}")
-
+    lo, hi, res, near, far, step_size = _check_march(rays_o, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                                                     max_samples_per_ray, contract)
     device = rays_o.device
     num_rays = rays_o.shape[0]
     if occ_bitfield is None:
@@ -195,11 +180,111 @@ def march_rays_within_budget(
     return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts), keep
 
 
+class MarchState(NamedTuple):
+    """Where each ray of a :func:`march_rays_window` march resumes (all (R,), updated in place)."""
+
+    k: torch.Tensor  # int32, next candidate step along the ray; -1 once the ray is finished
+    t: torch.Tensor  # float32, next sample's start (contracted march; the uniform one derives it from k)
+    taken: torch.Tensor  # int32, samples emitted so far
+
+    @staticmethod
+    def start(num_rays: int, near: float, device) -> "MarchState":
+        """Every ray at its first candidate step."""
+        return MarchState(torch.zeros(num_rays, dtype=torch.int32, device=device),
+                          torch.full((num_rays,), float(near), dtype=torch.float32, device=device),
+                          torch.zeros(num_rays, dtype=torch.int32, device=device))
+
+    def select(self, index: torch.Tensor) -> "MarchState":
+        """The state of rays ``index`` (a copy), for marching a subset of the rays on."""
+        return MarchState(*(v.index_select(0, index) for v in self))
+
+    @property
+    def finished(self) -> torch.Tensor:
+        """(R,) bool: rays with no samples left."""
+        return self.k < 0
+
+
+def march_rays_window(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    state: MarchState,
+    window: int,
+    aabb: Sequence[float],
+    occ_bitfield: Optional[torch.Tensor],
+    occ_resolution: int,
+    near: float,
+    far: float,
+    step_size: float,
+    max_samples_per_ray: int = 1024,
+    contract: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The next at most ``window`` samples of every ray, from where ``state`` says it stopped.
+
+    Marching a ray window after window (``state`` from :meth:`MarchState.start`, updated in
+    place) yields exactly the samples of :func:`march_rays` without jitter, in order; a renderer
+    that stops a ray once it is opaque never marches the rest of it. Returns ``(t_starts,
+    t_ends, counts)``: (R, window) float32 intervals of which the first ``counts[r]`` of row r
+    are samples (the rest is garbage), and (R,) int32 counts. Arguments as in :func:`march_rays`.
+    """
+    _check_rays(rays_o, rays_d, None)
+    lo, hi, res, near, far, step_size = _check_march(rays_o, aabb, occ_bitfield, occ_resolution, near, far, step_size,
+                                                     max_samples_per_ray, contract)
+    window = int(window)
+    if window < 1:
+        raise ValueError(f"march_rays_window: window must be >= 1, got {window}")
+    num_rays, device = rays_o.shape[0], rays_o.device
+    for name, v, dtype in (("k", state.k, torch.int32), ("t", state.t, torch.float32),
+                           ("taken", state.taken, torch.int32)):
+        if v.dtype != dtype or tuple(v.shape) != (num_rays,) or v.device != device or not v.is_contiguous():
+            raise ValueError(f"march_rays_window: state.{name} must be a contiguous ({num_rays},) {dtype} tensor "
+                             f"on {device}, got {tuple(v.shape)} {v.dtype} on {v.device}")
+    counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
+    t_starts = torch.empty(num_rays, window, dtype=torch.float32, device=device)
+    t_ends = torch.empty(num_rays, window, dtype=torch.float32, device=device)
+    if num_rays == 0:
+        return t_starts, t_ends, counts
+    if occ_bitfield is None:
+        res = 1
+        occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
+    wp = init_warp()
+    from ..kernels import raymarch as kernels
+
+    inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract),
+              wp.vec3(*lo), wp.vec3(*hi), wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)]),
+              as_warp(occ_bitfield, wp.uint8), res, near, far, step_size, int(max_samples_per_ray), window,
+              as_warp(state.k), as_warp(state.t), as_warp(state.taken), as_warp(counts),
+              as_warp(t_starts.view(-1)), as_warp(t_ends.view(-1))]
+    launch_over_rays(kernels.march_rays_window, num_rays, inputs, device)
+    return t_starts, t_ends, counts
+
+
 def rays_within_budget(ray_counts: torch.Tensor, max_total_samples: int) -> int:
     """Length of the longest prefix of rays whose (R,) ``ray_counts`` sum to at most
     ``max_total_samples``."""
     csum = torch.cumsum(ray_counts, 0, dtype=torch.int64)
     return int(torch.searchsorted(csum, torch.tensor([max_total_samples], device=csum.device), right=True)[0])
+
+
+def _check_march(rays_o, aabb, occ_bitfield, occ_resolution, near, far, step_size, max_samples_per_ray, contract):
+    """Validate the march's scalars and grid; returns (lo, hi, res, near, far, step_size)."""
+    lo, hi = aabb_floats(aabb)
+    res = _check_grid(occ_bitfield, occ_resolution, rays_o.device)
+    near, far, step_size = float(near), float(far), float(step_size)
+    if not (step_size > 0.0 and near == near and far == far and near <= far):
+        raise ValueError(
+            f"march_rays: need step_size > 0 and near <= far, got step_size={step_size}, near={near}, far={far}"
+        )
+    if contract and far == float("inf"):
+        raise ValueError("march_rays: a contracted march needs a finite far bound")
+    # contracted: steps of one step_size along the line's contracted image, a few units long
+    # (up to 4.2 measured on random rays, tests/test_raymarch.py); 8 leaves room
+    diagonal = 8.0 if contract else sum((h - l) ** 2 for l, h in zip(lo, hi)) ** 0.5
+    if diagonal / step_size > MAX_STEPS_PER_RAY:
+        raise ValueError(f"march_rays: step_size {step_size} needs more than {MAX_STEPS_PER_RAY} steps along the box "
+                         f"diagonal {diagonal:.4g}; use a step of at least {diagonal / MAX_STEPS_PER_RAY:.3g}")
+    if int(max_samples_per_ray) < 1:
+        raise ValueError(f"march_rays: max_samples_per_ray must be >= 1, got {max_samples_per_ray}")
+    return lo, hi, res, near, far, step_size
 
 
 def _check_rays(rays_o, rays_d, jitter) -> None:

@@ -13,9 +13,9 @@ from typing import Optional, Sequence
 import torch
 
 from ..launch import aabb_floats
-from ..raymarch import MAX_STEPS_PER_RAY, PackedSamples, rays_within_budget
+from ..raymarch import MAX_STEPS_PER_RAY, MarchState, PackedSamples, rays_within_budget
 
-__all__ = ["march_rays", "march_rays_within_budget"]
+__all__ = ["march_rays", "march_rays_within_budget", "march_rays_window"]
 
 
 def march_rays(
@@ -41,20 +41,7 @@ def march_rays(
         aabb, occ_bitfield, occ_resolution, near, far, step_size, device)
     num_rays = rays_o.shape[0]
 
-    t0 = near_t.expand(num_rays).clone()
-    t1 = far_t.expand(num_rays).clone()
-    for a in range(3):
-        o, d = rays_o[:, a], rays_d[:, a]
-        flat = d == 0.0
-        safe_d = torch.where(flat, torch.ones_like(d), d)
-        ta = (box_min[a] - o) / safe_d
-        tb = (box_max[a] - o) / safe_d
-        t0 = torch.where(flat, t0, torch.maximum(t0, torch.minimum(ta, tb)))
-        t1 = torch.where(flat, t1, torch.minimum(t1, torch.maximum(ta, tb)))
-        t1 = torch.where(flat & ((o < box_min[a]) | (o > box_max[a])), t0, t1)
-    hit = (t1 > t0) & (rays_d != 0.0).any(1)
-    # the kernel's guards: non-finite rays or intervals are misses, at most MAX_STEPS_PER_RAY steps
-    hit &= torch.isfinite(rays_o).all(1) & torch.isfinite(rays_d).all(1) & torch.isfinite(t0) & torch.isfinite(t1)
+    t0, t1, hit = _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t)
 
     u = jitter if jitter is not None else torch.zeros(num_rays, **f32)
     span = ((t1 - t0) / step)[hit]
@@ -71,6 +58,80 @@ def march_rays(
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).int()
     ray_ids, step_ids = keep.nonzero(as_tuple=True)
     return PackedSamples(ray_ids.int(), ts[ray_ids, step_ids], te[ray_ids, step_ids], offsets, counts)
+
+
+def _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t):
+    """kernels/raymarch.py ``ray_aabb_interval`` and the kernel's guards: (t0, t1, hit), where
+    non-finite rays or intervals are misses."""
+    num_rays = rays_o.shape[0]
+    t0 = near_t.expand(num_rays).clone()
+    t1 = far_t.expand(num_rays).clone()
+    for a in range(3):
+        o, d = rays_o[:, a], rays_d[:, a]
+        flat = d == 0.0
+        safe_d = torch.where(flat, torch.ones_like(d), d)
+        ta = (box_min[a] - o) / safe_d
+        tb = (box_max[a] - o) / safe_d
+        t0 = torch.where(flat, t0, torch.maximum(t0, torch.minimum(ta, tb)))
+        t1 = torch.where(flat, t1, torch.minimum(t1, torch.maximum(ta, tb)))
+        t1 = torch.where(flat & ((o < box_min[a]) | (o > box_max[a])), t0, t1)
+    hit = (t1 > t0) & (rays_d != 0.0).any(1)
+    hit &= torch.isfinite(rays_o).all(1) & torch.isfinite(rays_d).all(1) & torch.isfinite(t0) & torch.isfinite(t1)
+    return t0, t1, hit
+
+
+def march_rays_window(rays_o, rays_d, state: MarchState, window: int, aabb, occ_bitfield, occ_resolution, near, far,
+                      step_size, max_samples_per_ray: int = 1024, contract: bool = False):
+    """See :func:`warpnerf.ops.raymarch.march_rays_window`; same results and state updates
+    (rows past ``counts[r]`` are zero here). One candidate step of every ray at a time."""
+    device = rays_o.device
+    f32 = dict(dtype=torch.float32, device=device)
+    res, occ_bitfield, box_min, box_max, grid_scale, near_t, far_t, step = _kernel_scalars(
+        aabb, occ_bitfield, occ_resolution, near, far, step_size, device)
+    num_rays, window, cap = rays_o.shape[0], int(window), int(max_samples_per_ray)
+    if contract:
+        t0, t1 = near_t.expand(num_rays), far_t.expand(num_rays)
+        ok = (torch.isfinite(rays_o).all(1) & torch.isfinite(rays_d).all(1) & (rays_d != 0.0).any(1)
+              & torch.isfinite(t0) & torch.isfinite(t1) & (t1 > t0))
+    else:
+        t0, t1, ok = _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t)
+    k = state.k.long()
+    k = torch.where(ok, k, torch.full_like(k, -1))
+    taken = state.taken.long()
+    ts = state.t.clone()
+    limit = torch.clamp_max(cap - taken, window)
+    n = torch.zeros(num_rays, dtype=torch.int64, device=device)
+    t_starts = torch.zeros(num_rays, window, **f32)
+    t_ends = torch.zeros(num_rays, window, **f32)
+    rows = torch.arange(num_rays, device=device)
+    while True:
+        active = (k >= 0) & (n < limit)
+        if not contract:
+            ts = torch.where(active, t0 + k.float() * step, ts)
+        done = active & ((k >= MAX_STEPS_PER_RAY) | (ts >= t1))
+        k = torch.where(done, torch.full_like(k, -1), k)
+        active &= ~done
+        if not bool(active.any()):
+            break
+        if contract:
+            te = torch.minimum(ts + _contracted_step(rays_o, rays_d, ts, step), t1)
+            p = _contract_point(rays_o + rays_d * (0.5 * (ts + te))[:, None])
+        else:
+            te = torch.minimum(ts + step, t1)
+            p = rays_o + rays_d * (0.5 * (ts + te))[:, None]
+        keep = active & _occupied((p - box_min) * grid_scale, res, occ_bitfield)
+        idx = keep.nonzero().squeeze(1)
+        t_starts[rows[idx], n[idx]] = ts[idx]
+        t_ends[rows[idx], n[idx]] = te[idx]
+        n += keep.long()
+        ts = torch.where(active, te, ts)
+        k = torch.where(active, k + 1, k)
+    live = state.k >= 0
+    k = torch.where(live & ok & (taken + n >= cap), torch.full_like(k, -1), k)
+    state.k.copy_(torch.where(live, k, state.k.long()).int())
+    state.t.copy_(torch.where(live & ok, ts, state.t))
+    state.taken.copy_(torch.where(live & ok, taken + n, taken).int())
+    return t_starts, t_ends, n.int()
 
 
 def _kernel_scalars(aabb, occ_bitfield, occ_resolution, near, far, step_size, device):

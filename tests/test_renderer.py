@@ -1,0 +1,83 @@
+"""Renderer.render_image: rendering in rounds (early ray termination) against every sample, in
+each ray space, on an analytic field (no training: fast and independent of the grid encodings)."""
+
+import math
+
+import pytest
+import torch
+
+from warpnerf.data.rayspace import RaySpace
+from warpnerf.occupancy import OccupancyGrid
+from warpnerf.renderer import Renderer, default_step
+
+
+class Blobs(torch.nn.Module):
+    """Two soft balls of density (one dense, one thin) with position-dependent colour; the
+    field's interface (``geometry``, ``color``) on the space the renderer hands it."""
+
+    def __init__(self, centers, radius: float, densities):
+        super().__init__()
+        self.centers = torch.tensor(centers, dtype=torch.float32)
+        self.radius = radius
+        self.densities = torch.tensor(densities, dtype=torch.float32)
+
+    def geometry(self, x, level_weights=None):
+        dist = torch.cdist(x, self.centers)
+        sigma = (self.densities * torch.sigmoid((self.radius - dist) * 40.0)).sum(1)
+        return sigma, torch.cat([torch.sin(3 * x), torch.cos(2 * x)], 1)
+
+    def color(self, geo, dirs):
+        return torch.sigmoid(geo[:, :3] + geo[:, 3:] * dirs)
+
+
+def renderer_for(kind: str) -> tuple[Renderer, torch.Tensor]:
+    """A renderer in ray space ``kind`` and a camera-to-world looking at the blobs."""
+    if kind == "euclidean":
+        aabb = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
+        space, step = RaySpace.euclidean(aabb, 0.1, 10.0), default_step(aabb, 256)
+        field = Blobs([[0.0, 0.0, 0.0], [0.9, 0.5, 0.6]], 0.8, [100.0, 2.0])
+        c2w = torch.tensor([[1.0, 0, 0, 0.1], [0, 1, 0, -0.1], [0, 0, 1, 2.2]])
+    elif kind == "ndc":
+        space = RaySpace.ndc(40.0, 48, 40)
+        aabb, step = space.aabb, default_step(space.aabb, 256)
+        field = Blobs([[0.0, 0.0, 0.0], [0.6, -0.5, -0.5]], 0.75, [150.0, 3.0])
+        c2w = torch.tensor([[1.0, 0, 0, 0.0], [0, 1, 0, 0.0], [0, 0, 1, 0.0]])
+    else:
+        space = RaySpace.contracted(0.05, far=200.0)
+        aabb, step = space.aabb, 4.0 / 256
+        field = Blobs([[0.0, 0.0, 0.0], [1.1, 0.4, 0.4]], 0.8, [100.0, 1.5])
+        c2w = torch.tensor([[1.0, 0, 0, 0.0], [0, 1, 0, 0.0], [0, 0, 1, 2.5]])
+    occ = OccupancyGrid(aabb, 32)  # every cell occupied
+    return Renderer(field, occ, space, step, background=(0.2, 0.4, 0.6)), c2w
+
+
+@pytest.mark.parametrize("kind", ["euclidean", "ndc", "contracted"])
+def test_rounds_render_the_image_of_every_sample(kind):
+    r, c2w = renderer_for(kind)
+    calls = []
+    geometry = r.field.geometry
+
+    def counting(x, lw=None):
+        calls.append(x.shape[0])
+        return geometry(x, lw)
+
+    r.field.geometry = counting
+    args = (c2w, 40, 48, 40.0, 24.0, 20.0)
+    r.stop_transmittance = 0.0
+    every = r.render_image(*args)
+    marched, calls[:] = sum(calls), []
+    r.stop_transmittance = 1e-4
+    rounds = r.render_image(*args)
+    evaluated, calls[:] = sum(calls), []
+    r.round_samples, r.max_window = 701, 2  # many small rounds, chunks of 701 rays: same image
+    tiny = r.render_image(*args, chunk=701)
+    opacity = every["opacity"]
+    # the scene is rendered: some rays opaque, some see the background, some the thin blob
+    assert float(opacity.max()) > 0.999 and float(opacity.min()) < 0.01
+    assert bool(((opacity > 0.05) & (opacity < 0.9)).any())
+    # measured 0.71 / 0.68 / 0.79 of the samples (rays behind the dense ball stop)
+    assert evaluated < 0.85 * marched, (evaluated, marched)
+    for other in (rounds, tiny):
+        for key, tol in (("rgb", 1e-5), ("opacity", 1e-5), ("depth", 1e-3 * float(every["depth"].abs().max()))):
+            assert float((other[key] - every[key]).abs().max()) < tol, (kind, key)
+    assert not math.isnan(float(rounds["depth"].sum()))
