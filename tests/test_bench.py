@@ -110,3 +110,19 @@ def test_twin_swap_replaces_the_ops_the_renderer_calls():
         during = [getattr(m, n) for m, n in names]
     assert all(a is not b for a, b in zip(before, during))
     assert [getattr(m, n) for m, n in names] == before
+
+
+def test_render_bench_times_test_views_of_a_run(chair_run):
+    """bench render: rounds and every-sample renders of the same views, same image quality,
+    the rounds evaluating fewer samples per pixel; bad input is a clear error."""
+    from warpnerf.bench import bench_render, format_render
+
+    rounds = bench_render(str(chair_run), views=2, device="cpu")
+    every = bench_render(str(chair_run), views=2, device="cpu", every_sample=True)
+    assert rounds["views"] == every["views"] and len(rounds["views"]) == 2
+    assert rounds["median_s"] > 0 and rounds["min_s"] <= rounds["median_s"] <= rounds["max_s"]
+    assert abs(rounds["psnr"] - every["psnr"]) < 1e-3
+    assert 0 < rounds["samples_per_pixel"] <= every["samples_per_pixel"]
+    assert "s per view" in format_render(rounds)
+    with pytest.raises(ValueError, match="views must be >= 1"):
+        bench_render(str(chair_run), views=0)

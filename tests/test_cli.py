@@ -42,6 +42,13 @@ def test_missing_run_folder_is_an_error(tmp_path, capsys):
     assert "config.toml" in capsys.readouterr().err
 
 
+def test_bench_render_needs_a_run(tmp_path, capsys):
+    assert main(["bench", "render"]) == 2
+    assert "needs --run" in capsys.readouterr().err
+    assert main(["bench", "render", "--run", str(tmp_path / "nope")]) == 2
+    assert "config.toml" in capsys.readouterr().err
+
+
 def test_bad_device_is_an_error(capsys):
     assert main(["bench", "encoding", "--device", "tpu"]) == 2
     assert "unknown device" in capsys.readouterr().err

@@ -365,6 +365,23 @@ def test_window_march_resumes_only_rays_not_finished():
     assert torch.equal(counts_sub, counts[32:]) and torch.equal(sub.k, state.k[32:])
 
 
+def test_window_march_two_threads_bit_identical():
+    origins, dirs, bitfield, _ = random_rays(5, num_rays=1000)
+    before = num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            set_num_threads(threads)
+            state = MarchState.start(1000, 0.0, origins.device)
+            out = [march_rays_window(origins, dirs, state, 5, AABB, bitfield, RES, 0.0, 6.0, 0.01) for _ in range(3)]
+            valid = [torch.arange(5)[None, :] < n[:, None].long() for _, _, n in out]  # the rest is garbage
+            results.append([t for (ts, te, n), v in zip(out, valid) for t in (ts[v], te[v], n)] + list(state))
+    finally:
+        set_num_threads(before)
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
 def test_window_march_bad_inputs_raise():
     origins, dirs, bitfield, _ = random_rays(4, 8)
     state = MarchState.start(8, 0.3, origins.device)

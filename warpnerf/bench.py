@@ -440,3 +440,72 @@ def format_step(res: dict) -> str:
                  f"{roof['mlp_flops_s'] / 1e9:.1f} GFLOP/s ({roof['mlp_fraction']:.0%}), "
                  f"{roof['mlp_step_fraction']:.0%} of the warp step")
     return text
+
+
+def bench_render(run_dir: str, views: int = 5, device: str = "auto", every_sample: bool = False,
+                 progress: bool = False) -> dict:
+    """Seconds per rendered test view of a finished run (``render_image``, as evaluation, videos
+    and the viewer render), with the PSNR of those views.
+
+    Renders ``views`` test views spread evenly over the test set (one untimed view first:
+    compilation, caches); reports the median, min and max seconds and the samples evaluated per
+    pixel. ``every_sample`` renders with early ray termination off (``stop_transmittance`` = 0:
+    every marched sample evaluated), the reference the rounds are measured against."""
+    from .metrics import psnr
+    from .video import load_run
+
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
+    trainer = load_run(run_dir, device=device, progress=progress)
+    test = trainer.scene.test
+    weights = trainer.level_weights(trainer.cfg.iters)
+    renderer = trainer.renderer
+    if every_sample:
+        renderer.stop_transmittance = 0.0
+    picks = sorted({round(i * (len(test) - 1) / max(views - 1, 1)) for i in range(views)})
+    evaluated = []
+    geometry = trainer.field.geometry
+
+    def counting(x, level_weights=None):
+        evaluated[-1] += x.shape[0]
+        return geometry(x, level_weights)
+
+    trainer.field.geometry = counting
+    dev = trainer.device
+    try:
+        secs, psnrs = [], []
+        for k in [picks[0]] + picks:
+            evaluated.append(0)
+            _sync(dev)
+            t0 = time.perf_counter()
+            img = renderer.render_image(test.c2w[k].to(dev), test.height, test.width, test.focal, test.cx, test.cy,
+                                        weights)
+            _sync(dev)
+            secs.append(time.perf_counter() - t0)
+            psnrs.append(psnr(img["rgb"].clamp(0, 1).cpu(), test.images[k]))
+    finally:
+        del trainer.field.geometry
+    secs, psnrs, evaluated = secs[1:], psnrs[1:], evaluated[1:]
+    return {
+        "benchmark": "render",
+        "run": run_dir,
+        "scene": trainer.scene.name,
+        "device": str(dev),
+        "threads": devmod.num_threads(),
+        "width": test.width,
+        "height": test.height,
+        "views": picks,
+        "mode": "every sample" if every_sample else "rounds",
+        "median_s": statistics.median(secs),
+        "min_s": min(secs),
+        "max_s": max(secs),
+        "samples_per_pixel": statistics.mean(evaluated) / (test.width * test.height),
+        "psnr": statistics.mean(psnrs),
+    }
+
+
+def format_render(res: dict) -> str:
+    return (f"render {res['scene']} ({res['run']}), {len(res['views'])} test views {res['width']}x{res['height']}, "
+            f"{res['mode']}, device={res['device']}, threads={res['threads']}\n"
+            f"{res['median_s']:.3f} s per view (median; min {res['min_s']:.3f}, max {res['max_s']:.3f}), "
+            f"{res['samples_per_pixel']:.1f} samples evaluated per pixel, PSNR {res['psnr']:.3f} dB")

@@ -44,6 +44,12 @@ def cmd_bench(args) -> int:
                                    roofline=not args.no_roofline)
         print(json.dumps(res) if args.json else bench.format_encoding(res))
         return 0
+    if args.what == "render":
+        if not args.run:
+            raise UserError("warpnerf bench render needs --run RUN (a finished run folder)")
+        res = bench.bench_render(args.run, views=args.views, device=args.device, every_sample=args.every_sample)
+        print(json.dumps(res) if args.json else bench.format_render(res))
+        return 0
     if args.what == "step":
         res = bench.bench_step(repeats=args.repeats, device=args.device, data_root=args.data_root,
                                roofline=not args.no_roofline)
@@ -168,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_parser(sub)
 
     b = sub.add_parser("bench", help="benchmarks that print measured numbers")
-    b.add_argument("what", choices=["encoding", "step"], help="what to benchmark")
+    b.add_argument("what", choices=["encoding", "step", "render"], help="what to benchmark")
     b.add_argument("--n", type=int, default=262144, help="points per call")
     b.add_argument("--levels", type=int, default=16)
     b.add_argument("--log2-table-size", type=int, default=19)
@@ -178,6 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-roofline", action="store_true",
                    help="skip measuring the machine's gather and GEMM rates next to the benchmark")
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
+    b.add_argument("--run", default=None, help="render: the finished run folder whose test views are rendered")
+    b.add_argument("--views", type=int, default=5, help="render: test views timed (spread over the test set)")
+    b.add_argument("--every-sample", action="store_true",
+                   help="render: early ray termination off (every marched sample evaluated), the reference")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
     from .outputs_cli import add_output_commands  # render, export, view (commands on a finished run)
