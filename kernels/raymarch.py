@@ -236,6 +236,8 @@ def march_rays_window(
     step: float,
     max_samples: int,
     window: int,
+    box_min: wp.vec3,
+    box_max: wp.vec3,
     ray_k: wp.array(dtype=wp.int32),
     ray_t: wp.array(dtype=float),
     ray_taken: wp.array(dtype=wp.int32),
@@ -251,7 +253,9 @@ def march_rays_window(
     Per-ray state, read and updated: ``ray_k`` the next candidate step (-1 once the ray is
     finished: past its interval, out of steps, or ``max_samples`` taken), ``ray_t`` the next
     sample's start (contracted march only; the uniform one recomputes it from k), ``ray_taken``
-    the samples emitted so far. Writes ``counts[r]`` samples at ``[r * window, ...)``."""
+    the samples emitted so far. Writes ``counts[r]`` samples at ``[r * window, ...)``. The uniform
+    march only visits candidates near the box ``[box_min, box_max]`` holding every occupied cell
+    (the scene box when unknown): the same samples, without stepping through the empty rest."""
     r = first_ray + wp.tid()
     k = int(ray_k[r])
     n = int(0)
@@ -265,6 +269,16 @@ def march_rays_window(
             span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
             t0 = span[0]
             t1 = span[1]
+            # candidates whose midpoints lie outside the occupied cells' box [box_min, box_max] are
+            # never samples: start at the last candidate before it and stop one step past it (a
+            # margin far above float rounding), on the same candidate grid t0 + k step
+            tight = ray_aabb_interval(o, d, box_min, box_max, near, far)
+            if not (tight[1] > tight[0]):
+                ok = False
+            elif ok and wp.isfinite(t0) and wp.isfinite(t1):
+                t1 = wp.min(t1, tight[1] + step)
+                if k == 0:
+                    k = wp.max(0, int(wp.floor((tight[0] - t0) / step - 0.5)) - 1)
         if not (ok and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0):
             k = -1
         else:

@@ -347,6 +347,36 @@ def test_window_march_yields_the_full_march_and_matches_its_twin(contract, windo
         assert torch.equal(state.k, state_r.k) and torch.equal(state.taken, state_r.taken)
 
 
+@pytest.mark.parametrize("window", [1, 4])
+def test_window_march_near_the_occupied_box_yields_the_same_samples(window):
+    """With ``occupied_box`` (the box around the occupied cells) the window march starts each ray
+    just before that box and stops just after it: still exactly march_rays' samples, and the
+    kernel agrees with its twin."""
+    origins, dirs, _, _ = random_rays(6, 1000)
+    res = 16
+    bitfield = torch.zeros(res, res, res, dtype=torch.uint8)
+    g = torch.Generator().manual_seed(6)
+    bitfield[5:11, 3:9, 7:13] = (torch.rand(6, 6, 6, generator=g) < 0.5).to(torch.uint8)
+    bitfield = bitfield.flatten()
+    lo, hi = torch.tensor(AABB[:3]), torch.tensor(AABB[3:])
+    cell = (hi - lo) / res
+    box = tuple((lo + cell * torch.tensor([5, 3, 7])).tolist() + (lo + cell * torch.tensor([11, 9, 13])).tolist())
+    args = (AABB, bitfield, res, 0.3, 3.5, 0.01, 1024)
+    full = march_rays(origins, dirs, *args)
+    kwargs = dict(occupied_box=box)
+    per_ray, rounds = march_in_windows(march_rays_window, origins, dirs, window, args, kwargs)
+    assert full.t_starts.numel() > 300
+    for r in range(origins.shape[0]):
+        a, n = int(full.ray_offsets[r]), int(full.ray_counts[r])
+        assert per_ray[r] == list(zip(full.t_starts[a:a + n].tolist(), full.t_ends[a:a + n].tolist())), r
+    _, rounds_ref = march_in_windows(march_rays_window_ref, origins, dirs, window, args, kwargs)
+    assert len(rounds_ref) == len(rounds)
+    for (ts, te, counts, state), (ts_r, te_r, counts_r, state_r) in zip(rounds, rounds_ref):
+        valid = torch.arange(window)[None, :] < counts[:, None].long()
+        assert torch.equal(counts, counts_r) and torch.equal(ts[valid], ts_r[valid])
+        assert torch.equal(te[valid], te_r[valid]) and torch.equal(state.k, state_r.k)
+
+
 def test_window_march_resumes_only_rays_not_finished():
     """A finished ray (k = -1) gets no samples and keeps its state; a subset of rays marched
     with ``MarchState.select`` continues where it stopped."""

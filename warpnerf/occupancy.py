@@ -127,6 +127,23 @@ class OccupancyGrid:
         """Fraction of cells currently marked occupied, in [0, 1]."""
         return float(self.bitfield.float().mean())
 
+    def occupied_box(self) -> Optional[tuple]:
+        """The box (6 floats, the grid's coordinates) bounding every occupied cell; None when no
+        cell is occupied."""
+        res = self.resolution
+        grid = self.bitfield.view(res, res, res)
+        bounds = []
+        for axis in range(3):
+            other = tuple(a for a in range(3) if a != axis)
+            hit = torch.nonzero(grid.amax(dim=other)).flatten()
+            if hit.numel() == 0:
+                return None
+            bounds.append((int(hit[0]), int(hit[-1]) + 1))
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        box_lo = [lo[a] + (hi[a] - lo[a]) * bounds[a][0] / res for a in range(3)]
+        box_hi = [lo[a] + (hi[a] - lo[a]) * bounds[a][1] / res for a in range(3)]
+        return tuple(box_lo + box_hi)
+
     def _pick_cells(self, step: int, generator: Optional[torch.Generator]) -> torch.Tensor:
         """(M,) int32 cell indices to sample in this update (repeats allowed)."""
         n = self.num_cells

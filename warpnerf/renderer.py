@@ -155,6 +155,7 @@ class Renderer:
         num, dev = o.shape[0], o.device
         occ = self.occupancy
         march = (occ.aabb, occ.bitfield, occ.resolution, self.near, self.far, self.step, self.max_samples_per_ray)
+        occupied_box = occ.occupied_box()  # rays march only near the occupied cells (same samples)
         rgb = torch.zeros(num, 3, device=dev)
         opacity = torch.zeros(num, device=dev)
         depth = torch.zeros(num, device=dev)
@@ -166,7 +167,8 @@ class Renderer:
             n_alive = alive.numel()
             window = max(1, min(self.round_samples // n_alive, self.max_window))
             t_starts, t_ends, counts = march_rays_window(o, d, state, window, *march,
-                                                         contract=self.ray_space.is_contracted)
+                                                         contract=self.ray_space.is_contracted,
+                                                         occupied_box=occupied_box)
             rows, cols = torch.nonzero(torch.arange(window, device=dev) < counts[:, None], as_tuple=True)
             if rows.numel():
                 n_samples += rows.numel()

@@ -81,7 +81,7 @@ def _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t):
 
 
 def march_rays_window(rays_o, rays_d, state: MarchState, window: int, aabb, occ_bitfield, occ_resolution, near, far,
-                      step_size, max_samples_per_ray: int = 1024, contract: bool = False):
+                      step_size, max_samples_per_ray: int = 1024, contract: bool = False, occupied_box=None):
     """See :func:`warpnerf.ops.raymarch.march_rays_window`; same results and state updates
     (rows past ``counts[r]`` are zero here). One candidate step of every ray at a time."""
     device = rays_o.device
@@ -96,6 +96,15 @@ def march_rays_window(rays_o, rays_d, state: MarchState, window: int, aabb, occ_
     else:
         t0, t1, ok = _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t)
     k = state.k.long()
+    if not contract:
+        f32b = lambda v: torch.tensor(v, dtype=torch.float32, device=device)
+        tight_lo, tight_hi = aabb_floats(occupied_box) if occupied_box is not None else aabb_floats(aabb)
+        tt0, tt1, _ = _box_interval(rays_o, rays_d, f32b(tight_lo), f32b(tight_hi), near_t, far_t)
+        usable = ok & torch.isfinite(t0) & torch.isfinite(t1)
+        t1 = torch.where(usable & (tt1 > tt0), torch.minimum(t1, tt1 + step), t1)
+        start = torch.clamp_min(torch.floor((tt0 - t0) / step - 0.5).long() - 1, 0)
+        k = torch.where(usable & (tt1 > tt0) & (k == 0), start, k)
+        ok = ok & (tt1 > tt0)
     k = torch.where(ok, k, torch.full_like(k, -1))
     taken = state.taken.long()
     ts = state.t.clone()
