@@ -137,3 +137,18 @@ def test_bad_inputs_raise():
         grid.update(0, lambda x: torch.zeros(3))
     with pytest.raises(ValueError, match="NaN"):
         grid.update(0, lambda x: torch.full((x.shape[0],), float("nan")))
+
+
+def test_occupied_box_bounds_the_occupied_cells():
+    res = 8
+    grid = OccupancyGrid(AABB, resolution=res)
+    assert grid.occupied_box() == pytest.approx(AABB)  # a new grid is fully occupied
+    grid.bitfield.zero_()
+    assert grid.occupied_box() is None
+    cells = grid.bitfield.view(res, res, res)
+    cells[2, 5, 1] = 1
+    cells[4, 3, 6] = 1
+    lo, hi = torch.tensor(AABB[:3]), torch.tensor(AABB[3:])
+    size = (hi - lo) / res
+    want = (lo + size * torch.tensor([2, 3, 1])).tolist() + (lo + size * torch.tensor([5, 6, 7])).tolist()
+    assert grid.occupied_box() == pytest.approx(want)
