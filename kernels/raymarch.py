@@ -73,6 +73,13 @@ def ray_aabb_interval(o: wp.vec3, d: wp.vec3, aabb_min: wp.vec3, aabb_max: wp.ve
 
 
 @wp.func
+def occupied(p: wp.vec3, aabb_min: wp.vec3, grid_scale: wp.vec3, occ_bitfield: wp.array(dtype=wp.uint8), res: int):
+    """Point p (the grid's space) lies in an occupied cell of the grid (False outside it)."""
+    c = cell_index(grid_coords(p, aabb_min, grid_scale), res)
+    return c >= 0 and occ_bitfield[c] != wp.uint8(0)
+
+
+@wp.func
 def sample_slots(fill: int, r: int, max_samples: int, ray_offsets: wp.array(dtype=wp.int32),
                  ray_counts: wp.array(dtype=wp.int32)):
     """(first packed slot, most samples) of ray r: the count pass may keep up to ``max_samples``;
@@ -136,8 +143,7 @@ def march_rays(
             if ts >= t1:
                 break
             te = wp.min(ts + step, t1)
-            c = cell_index(grid_coords(o + d * (0.5 * (ts + te)), aabb_min, grid_scale), res)
-            if c >= 0 and occ_bitfield[c] != wp.uint8(0):
+            if occupied(o + d * (0.5 * (ts + te)), aabb_min, grid_scale, occ_bitfield, res):
                 store_sample(fill, base + n, r, ts, te, ray_indices, t_starts, t_ends)
                 n += 1
             k += 1
@@ -210,8 +216,7 @@ def march_rays_contracted(
         k = int(0)
         while n < limit and k < MAX_STEPS and ts < t1:
             te = wp.min(ts + contracted_step(o, d, ts, step), t1)
-            c = cell_index(grid_coords(contract_point(o + d * (0.5 * (ts + te))), aabb_min, grid_scale), res)
-            if c >= 0 and occ_bitfield[c] != wp.uint8(0):
+            if occupied(contract_point(o + d * (0.5 * (ts + te))), aabb_min, grid_scale, occ_bitfield, res):
                 store_sample(fill, base + n, r, ts, te, ray_indices, t_starts, t_ends)
                 n += 1
             ts = te
@@ -299,8 +304,7 @@ def march_rays_window(
                 else:
                     te = wp.min(ts + contracted_step(o, d, ts, step), t1)
                     p = contract_point(o + d * (0.5 * (ts + te)))
-                c = cell_index(grid_coords(p, aabb_min, grid_scale), res)
-                if c >= 0 and occ_bitfield[c] != wp.uint8(0):
+                if occupied(p, aabb_min, grid_scale, occ_bitfield, res):
                     t_starts[r * window + n] = ts
                     t_ends[r * window + n] = te
                     n += 1
