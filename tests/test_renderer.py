@@ -77,6 +77,7 @@ def test_rounds_render_the_image_of_every_sample(kind):
     assert bool(((opacity > 0.05) & (opacity < 0.9)).any())
     # measured 0.71 / 0.68 / 0.79 of the samples (rays behind the dense ball stop)
     assert evaluated < 0.85 * marched, (evaluated, marched)
+    assert (rounds["samples"], every["samples"]) == (evaluated, marched)  # what render_image reports
     for other in (rounds, tiny):
         for key, tol in (("rgb", 1e-5), ("opacity", 1e-5), ("depth", 1e-3 * float(every["depth"].abs().max()))):
             assert float((other[key] - every[key]).abs().max()) < tol, (kind, key)

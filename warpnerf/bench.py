@@ -463,28 +463,17 @@ def bench_render(run_dir: str, views: int = 5, device: str = "auto", every_sampl
     if every_sample:
         renderer.stop_transmittance = 0.0
     picks = sorted({round(i * (len(test) - 1) / max(views - 1, 1)) for i in range(views)})
-    evaluated = []
-    geometry = trainer.field.geometry
-
-    def counting(x, level_weights=None):
-        evaluated[-1] += x.shape[0]
-        return geometry(x, level_weights)
-
-    trainer.field.geometry = counting
     dev = trainer.device
-    try:
-        secs, psnrs = [], []
-        for k in [picks[0]] + picks:
-            evaluated.append(0)
-            _sync(dev)
-            t0 = time.perf_counter()
-            img = renderer.render_image(test.c2w[k].to(dev), test.height, test.width, test.focal, test.cx, test.cy,
-                                        weights)
-            _sync(dev)
-            secs.append(time.perf_counter() - t0)
-            psnrs.append(psnr(img["rgb"].clamp(0, 1).cpu(), test.images[k]))
-    finally:
-        del trainer.field.geometry
+    secs, psnrs, evaluated = [], [], []
+    for k in [picks[0]] + picks:
+        _sync(dev)
+        t0 = time.perf_counter()
+        img = renderer.render_image(test.c2w[k].to(dev), test.height, test.width, test.focal, test.cx, test.cy,
+                                    weights)
+        _sync(dev)
+        secs.append(time.perf_counter() - t0)
+        evaluated.append(img["samples"])
+        psnrs.append(psnr(img["rgb"].clamp(0, 1).cpu(), test.images[k]))
     secs, psnrs, evaluated = secs[1:], psnrs[1:], evaluated[1:]
     return {
         "benchmark": "render",

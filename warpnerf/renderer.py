@@ -25,7 +25,7 @@ import torch
 
 from .data.rayspace import RaySpace
 from .occupancy import OccupancyGrid
-from .ops.composite import composite_rays
+from .ops.composite import TRANSMITTANCE_EPS, composite_rays
 from .ops.raymarch import MarchState, march_rays_window, march_rays_within_budget
 
 
@@ -108,7 +108,6 @@ class Renderer:
         # reused heap memory: 2^17 rendered lego 0.87 s/view where 2^18 took 1.3) and per ray per round
         self.round_samples = 1 << 17
         self.max_window = 16
-        self.composite_eps = 1e-4  # composite_rays' transmittance_eps: weight 0 once T < this
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
                     jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None) -> RenderOutput:
@@ -143,7 +142,7 @@ class Renderer:
 
         Round after round, every ray still alive takes its next ``window`` samples
         (:func:`~warpnerf.ops.raymarch.march_rays_window`; ``window`` grows as rays die so a
-        round holds about ``sample_budget`` samples), the field is evaluated there, the samples
+        round holds about ``round_samples`` samples), the field is evaluated there, the samples
         are composited onto the ray's running colour, and rays whose transmittance fell below
         ``stop_transmittance`` (or that have no samples left) leave. Samples behind that point
         are never marched nor evaluated; each would have weighed less than ``stop_transmittance``.
@@ -181,8 +180,8 @@ class Renderer:
                 keep = torch.ones(n_alive, window, device=dev)
                 keep[rows, cols] = torch.exp(-sigma.float() * (t1 - t0))
                 t_before = trans[:, None] * torch.cumprod(torch.cat([keep.new_ones(n_alive, 1), keep[:, :-1]], 1), 1)
-                w = torch.where(t_before < self.composite_eps, 0.0, t_before * (1.0 - keep))[rows, cols]
-                trans = torch.where(t_before[:, -1] < self.composite_eps, 0.0, t_before[:, -1] * keep[:, -1])
+                w = torch.where(t_before < TRANSMITTANCE_EPS, 0.0, t_before * (1.0 - keep))[rows, cols]
+                trans = torch.where(t_before[:, -1] < TRANSMITTANCE_EPS, 0.0, t_before[:, -1] * keep[:, -1])
                 ray = alive.index_select(0, rows)
                 opacity.index_add_(0, ray, w)
                 depth.index_add_(0, ray, w * t_mid)
@@ -226,7 +225,8 @@ class Renderer:
         the samples), or with ``stop_transmittance`` = 0 :meth:`render_rays`, every sample
         (default chunk 2^16).
 
-        Returns ``rgb`` (H, W, 3), ``depth`` (H, W), ``opacity`` (H, W).
+        Returns ``rgb`` (H, W, 3), ``depth`` (H, W), ``opacity`` (H, W) and ``samples``, the
+        number of samples the field was evaluated at.
         """
         rounds = self.stop_transmittance > 0
         chunk = int(chunk or (1 << 18 if rounds else 1 << 16))
@@ -235,7 +235,7 @@ class Renderer:
                               torch.arange(width, device=dev, dtype=torch.float32) + 0.5, indexing="ij")
         u, v = u.reshape(-1), v.reshape(-1)
         rgbs, depths, opac = [], [], []
-        lo = 0
+        lo = samples = 0
         while lo < u.shape[0]:
             uu, vv = u[lo:lo + chunk], v[lo:lo + chunk]
             o, d = pixel_rays(c2w[None].expand(uu.shape[0], 3, 4), uu, vv, focal, cx, cy)
@@ -245,6 +245,7 @@ class Renderer:
                 out = self.render_rays(o.contiguous(), d.contiguous(), level_weights)
             # rays past the sample budget were not rendered: the next chunk starts with them
             done = max(out.n_rays, 1)
+            samples += out.n_samples
             rgbs.append(out.rgb[:done])
             depths.append(out.depth[:done])
             opac.append(out.opacity[:done])
@@ -253,6 +254,7 @@ class Renderer:
             "rgb": torch.cat(rgbs).view(height, width, 3),
             "depth": torch.cat(depths).view(height, width),
             "opacity": torch.cat(opac).view(height, width),
+            "samples": samples,
         }
 
 

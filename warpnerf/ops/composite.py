@@ -15,7 +15,10 @@ import torch
 from ..device import init_warp
 from .launch import as_warp, launch_over_rays
 
-__all__ = ["composite_rays"]
+__all__ = ["composite_rays", "TRANSMITTANCE_EPS"]
+
+# default early-termination threshold on a ray's transmittance (the renderer's rounds use it too)
+TRANSMITTANCE_EPS = 1e-4
 
 
 def composite_rays(
@@ -26,7 +29,7 @@ def composite_rays(
     ray_offsets: torch.Tensor,
     ray_counts: torch.Tensor,
     background: Union[Sequence[float], torch.Tensor] = (1.0, 1.0, 1.0),
-    transmittance_eps: float = 1e-4,
+    transmittance_eps: float = TRANSMITTANCE_EPS,
     return_weights: bool = False,
 ):
     """Alpha-composite packed samples front to back.

@@ -10,6 +10,8 @@ from typing import Sequence, Union
 
 import torch
 
+from ..composite import TRANSMITTANCE_EPS
+
 __all__ = ["composite_rays"]
 
 
@@ -21,7 +23,7 @@ def composite_rays(
     ray_offsets: torch.Tensor,
     ray_counts: torch.Tensor,
     background: Union[Sequence[float], torch.Tensor] = (1.0, 1.0, 1.0),
-    transmittance_eps: float = 1e-4,
+    transmittance_eps: float = TRANSMITTANCE_EPS,
     return_weights: bool = False,
 ):
     """See :func:`warpnerf.ops.composite.composite_rays`; same outputs, autograd gradients."""
