@@ -320,31 +320,34 @@ def march_in_windows(march, origins, dirs, window, args, kwargs):
     return per_ray, rounds
 
 
-@pytest.mark.parametrize("contract", [False, True])
-@pytest.mark.parametrize("window,cap", [(1, 1024), (3, 1024), (4, 7)])
-def test_window_march_yields_the_full_march_and_matches_its_twin(contract, window, cap):
+def check_windows(origins, dirs, window, args, kwargs, min_samples):
     """Marching window after window gives exactly march_rays' samples (no jitter), and the
     kernel and its twin agree on every window's samples, counts and resume state."""
-    if contract:
-        origins, dirs, bitfield, _ = contracted_rays(2, 96)
-        args = (CONTRACTED_BOX, bitfield, RES, 0.05, 1000.0, 0.02, cap)
-    else:
-        origins, dirs, bitfield, _ = random_rays(2, 96)
-        args = (AABB, bitfield, RES, 0.3, 3.5, 0.02, cap)
-    kwargs = dict(contract=contract)
-    full = march_rays(origins, dirs, *args, **kwargs)
+    full = march_rays(origins, dirs, *args, contract=kwargs.get("contract", False))
     per_ray, rounds = march_in_windows(march_rays_window, origins, dirs, window, args, kwargs)
-    assert full.t_starts.numel() > 100
+    assert full.t_starts.numel() > min_samples
     for r in range(origins.shape[0]):
         lo, n = int(full.ray_offsets[r]), int(full.ray_counts[r])
         assert per_ray[r] == list(zip(full.t_starts[lo:lo + n].tolist(), full.t_ends[lo:lo + n].tolist())), r
-    per_ray_ref, rounds_ref = march_in_windows(march_rays_window_ref, origins, dirs, window, args, kwargs)
+    _, rounds_ref = march_in_windows(march_rays_window_ref, origins, dirs, window, args, kwargs)
     assert len(rounds_ref) == len(rounds)
     for (ts, te, counts, state), (ts_r, te_r, counts_r, state_r) in zip(rounds, rounds_ref):
         assert torch.equal(counts, counts_r)
         valid = torch.arange(window)[None, :] < counts[:, None].long()
         assert torch.equal(ts[valid], ts_r[valid]) and torch.equal(te[valid], te_r[valid])
         assert torch.equal(state.k, state_r.k) and torch.equal(state.taken, state_r.taken)
+
+
+@pytest.mark.parametrize("contract", [False, True])
+@pytest.mark.parametrize("window,cap", [(1, 1024), (3, 1024), (4, 7)])
+def test_window_march_yields_the_full_march_and_matches_its_twin(contract, window, cap):
+    if contract:
+        origins, dirs, bitfield, _ = contracted_rays(2, 96)
+        args = (CONTRACTED_BOX, bitfield, RES, 0.05, 1000.0, 0.02, cap)
+    else:
+        origins, dirs, bitfield, _ = random_rays(2, 96)
+        args = (AABB, bitfield, RES, 0.3, 3.5, 0.02, cap)
+    check_windows(origins, dirs, window, args, dict(contract=contract), min_samples=100)
 
 
 @pytest.mark.parametrize("window", [1, 4])
@@ -357,24 +360,11 @@ def test_window_march_near_the_occupied_box_yields_the_same_samples(window):
     bitfield = torch.zeros(res, res, res, dtype=torch.uint8)
     g = torch.Generator().manual_seed(6)
     bitfield[5:11, 3:9, 7:13] = (torch.rand(6, 6, 6, generator=g) < 0.5).to(torch.uint8)
-    bitfield = bitfield.flatten()
     lo, hi = torch.tensor(AABB[:3]), torch.tensor(AABB[3:])
     cell = (hi - lo) / res
     box = tuple((lo + cell * torch.tensor([5, 3, 7])).tolist() + (lo + cell * torch.tensor([11, 9, 13])).tolist())
-    args = (AABB, bitfield, res, 0.3, 3.5, 0.01, 1024)
-    full = march_rays(origins, dirs, *args)
-    kwargs = dict(occupied_box=box)
-    per_ray, rounds = march_in_windows(march_rays_window, origins, dirs, window, args, kwargs)
-    assert full.t_starts.numel() > 300
-    for r in range(origins.shape[0]):
-        a, n = int(full.ray_offsets[r]), int(full.ray_counts[r])
-        assert per_ray[r] == list(zip(full.t_starts[a:a + n].tolist(), full.t_ends[a:a + n].tolist())), r
-    _, rounds_ref = march_in_windows(march_rays_window_ref, origins, dirs, window, args, kwargs)
-    assert len(rounds_ref) == len(rounds)
-    for (ts, te, counts, state), (ts_r, te_r, counts_r, state_r) in zip(rounds, rounds_ref):
-        valid = torch.arange(window)[None, :] < counts[:, None].long()
-        assert torch.equal(counts, counts_r) and torch.equal(ts[valid], ts_r[valid])
-        assert torch.equal(te[valid], te_r[valid]) and torch.equal(state.k, state_r.k)
+    args = (AABB, bitfield.flatten(), res, 0.3, 3.5, 0.01, 1024)
+    check_windows(origins, dirs, window, args, dict(occupied_box=box), min_samples=300)
 
 
 def test_window_march_resumes_only_rays_not_finished():
