@@ -117,3 +117,36 @@ def test_fewshot_heldout_gap_and_plot(tmp_path):
     path = tmp_path / "h.png"
     assert plot_heldout_comparison(str(path), "lego", arms_) and path.stat().st_size > 1000
     assert not plot_heldout_comparison(str(tmp_path / "none.png"), "lego", {"w/": {}})
+
+
+def test_several_seeds_give_means_and_the_per_seed_gap():
+    """`warpnerf table --seed 0,1,2`: cells are means over seeds and each scene's paired PSNR gaps
+    (w/ - w/o per seed) are listed with their mean and spread."""
+    import statistics
+
+    from warpnerf.cli import build_parser
+    from warpnerf.sweep import RunResult, SweepSpec, expand
+    from warpnerf.table import tables_markdown, table_spec
+
+    psnr = {("g2fr", 0): 23.69, ("nog2fr", 0): 24.02, ("g2fr", 1): 24.00, ("nog2fr", 1): 23.98,
+            ("g2fr", 2): 23.86, ("nog2fr", 2): 24.26}
+    spec = table_spec(["lego"], ["fewshot"], seed=[0, 1, 2], out="o")
+    assert spec.seeds == [0, 1, 2]
+    results = [RunResult(run, status="done", metrics={"psnr": psnr[(run.arm, run.seed)], "ssim": 0.9, "iters": 1000})
+               for run in expand(spec)]
+    text = tables_markdown(results)
+    assert "seeds 0, 1, 2 (mean)" in text
+    gaps = [-0.33, 0.02, -0.40]
+    assert "lego: PSNR w/ - w/o per seed -0.33 (seed 0), +0.02 (seed 1), -0.40 (seed 2)" in text
+    assert f"mean {statistics.mean(gaps):+.2f}, std {statistics.stdev(gaps):.2f}" in text
+    row = next(line for line in text.splitlines() if line.startswith("| lego |"))
+    assert f"{(23.69 + 24.00 + 23.86) / 3:.2f} (22.46)" in row and f"{(24.02 + 23.98 + 24.26) / 3:.2f} (19.85)" in row
+
+    # one seed: no per-seed sentence; the flag takes one seed or a list, and rejects repeats
+    one = [r for r in results if r.run.seed == 0]
+    assert "per seed" not in tables_markdown(one)
+    parser = build_parser()
+    assert parser.parse_args(["table", "--seed", "0,1,2"]).seed == [0, 1, 2]
+    assert parser.parse_args(["table"]).seed == [0]
+    with pytest.raises(SystemExit):
+        parser.parse_args(["table", "--seed", "1,1"])

@@ -108,6 +108,17 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _seed_list(text: str) -> list[int]:
+    """``--seed 0`` or ``--seed 0,1,2`` -> distinct ints in the given order."""
+    try:
+        seeds = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a seed or comma-separated seeds, got '{text}'") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds, got '{text}'")
+    return seeds
+
+
 def cmd_table(args) -> int:
     from .sweep import report_failures
     from .table import run_table
@@ -162,7 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--data-root", default=None)
     tb.add_argument("--iters", type=int, default=None, help="override the presets' iterations")
     tb.add_argument("--out", default="runs/table")
-    tb.add_argument("--seed", type=int, default=0)
+    tb.add_argument("--seed", type=_seed_list, default=[0],
+                    help="a seed, or comma-separated seeds (e.g. 0,1,2): each arm runs once per seed; the table "
+                         "shows means and the per-seed PSNR gap w/ - w/o")
     tb.add_argument("--config", default=None, help="TOML file overriding the task presets (both arms)")
     tb.add_argument("--reuse", action="store_true",
                     help="(always on now: a run folder holding a finished run of the same configuration is read)")

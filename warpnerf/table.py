@@ -1,7 +1,7 @@
 """``warpnerf table``: the paper's comparison, with and without G²fR, as Markdown tables.
 
 A thin layer over ``warpnerf sweep`` (``sweep.py``): the flags make a sweep spec (scenes x
-models x tasks x both arms, one seed), the sweep trains or skips each run, and this module turns
+models x tasks x both arms x seeds), the sweep trains or skips each run, and this module turns
 the collected metrics into ``<out>/table.md`` shaped like the paper's Tab. 1 (pose: rotation
 error, translation error x100, PSNR, with BARF's published row) and Tab. 3 (few-shot: PSNR, SSIM,
 LPIPS), with the paper's own numbers (``paper.py``) in brackets where the paper reports the scene.
@@ -106,6 +106,28 @@ def _mean_over_seeds(metrics: list[dict]) -> dict:
     return out
 
 
+def seed_gaps(group: list, scene: str, key: str = "psnr") -> list[tuple[int, float]]:
+    """``(seed, w/ - w/o)`` of ``key`` for every seed where both arms of ``scene`` finished, in seed
+    order: the paired differences, which a mean over seeds hides (is the gap bigger than the
+    seed-to-seed spread?)."""
+    by_seed: dict = {}
+    for r in group:
+        if r.run.scene == scene and r.metrics and isinstance(r.metrics.get(key), (int, float)):
+            by_seed.setdefault(r.run.seed, {})[r.run.arm] = r.metrics[key]
+    return [(seed, arms["g2fr"] - arms["nog2fr"]) for seed, arms in sorted(by_seed.items())
+            if "g2fr" in arms and "nog2fr" in arms]
+
+
+def format_seed_gaps(scene: str, gaps: list[tuple[int, float]], key: str = "psnr") -> str:
+    """One sentence: the per-seed gaps, their mean and sample standard deviation."""
+    import statistics
+
+    values = [g for _, g in gaps]
+    per_seed = ", ".join(f"{g:+.2f} (seed {s})" for s, g in gaps)
+    return (f"{scene}: {key.upper() if key == 'psnr' else key} w/ - w/o per seed {per_seed}; mean {statistics.mean(values):+.2f}, "
+            f"std {statistics.stdev(values):.2f}.")
+
+
 def _ran_on(results: list) -> str:
     """Where the runs ran, from the runs themselves (device, threads, machine), not assumed."""
     seen = []
@@ -151,8 +173,14 @@ def tables_markdown(results: list) -> str:
             for scene, arms in rows.items():
                 gap = heldout_gap(arms)
                 if gap:
-                    note += (f" {scene}: the held-out PSNR gap w/ - w/o is largest at step {gap[0] + 1}: "
+                    first = f" (seed {seeds[0]})" if len(seeds) > 1 else ""  # the histories are the first seed's
+                    note += (f" {scene}{first}: the held-out PSNR gap w/ - w/o is largest at step {gap[0] + 1}: "
                              f"{gap[1]:+.2f} dB ({gap[2]:.2f} vs {gap[3]:.2f}).")
+        if len(seeds) > 1:
+            for scene in rows:
+                gaps = seed_gaps(group, scene)
+                if len(gaps) > 1:
+                    note += " " + format_seed_gaps(scene, gaps)
         if failed:
             note += f" Failed runs (n/a): {', '.join(failed)}."
         sections.append(f"### {TITLES.get(task, task)}, {model}\n\n{note}\n\n{format_table(task, rows, model)}\n")
@@ -186,22 +214,24 @@ def write_tables(spec, results: list) -> str:
 
 
 def table_spec(scenes: list[str], tasks: list[str], models: Optional[list[str]] = None, data_root: Optional[str] = None,
-               iters: Optional[int] = None, out: str = "runs/table", seed: int = 0, device: str = "auto",
+               iters: Optional[int] = None, out: str = "runs/table", seed: int | list[int] = 0, device: str = "auto",
                config_file: Optional[str] = None, threads: Optional[int] = None):
-    """The sweep spec behind ``warpnerf table``: both arms of every scene x model x task, one seed.
+    """The sweep spec behind ``warpnerf table``: both arms of every scene x model x task, for one
+    seed or each of a list of seeds (the table then shows means and the per-seed gaps).
     No turntable: the table needs metrics only, and a 400x400 video costs minutes on a CPU."""
     from .sweep import SweepSpec
 
     overrides = {"video_frames": 0}
     if iters is not None:
         overrides["iters"] = iters
-    return SweepSpec(scenes=scenes, models=models or ["ngp"], tasks=tasks, seeds=[seed], out=out,
+    return SweepSpec(scenes=scenes, models=models or ["ngp"], tasks=tasks,
+                     seeds=[seed] if isinstance(seed, int) else list(seed), out=out,
                      data_root=data_root, config=config_file, device=device, num_cpus=threads, overrides=overrides,
                      retries=0)
 
 
 def run_table(scenes: list[str], tasks: list[str], models: Optional[list[str]] = None, data_root: Optional[str] = None,
-              iters: Optional[int] = None, out: str = "runs/table", seed: int = 0, device: str = "auto",
+              iters: Optional[int] = None, out: str = "runs/table", seed: int | list[int] = 0, device: str = "auto",
               config_file: Optional[str] = None, threads: Optional[int] = None, progress: bool = True) -> dict:
     """Train (or skip, when finished with the identical configuration) both arms of every run and
     write ``<out>/table.md``. Returns ``run_sweep``'s result (``table``, ``results``, ``failed``)."""
