@@ -3,7 +3,6 @@
 import pytest
 import torch
 
-from warpnerf.device import num_threads, set_num_threads
 from warpnerf.ops.composite import composite_rays
 from warpnerf.ops.reference.composite import composite_rays as composite_rays_ref
 
@@ -118,23 +117,19 @@ def test_twin_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(outputs, (sigmas, rgbs), fast_mode=True)
 
 
-def test_two_threads_bit_identical():
+def test_two_threads_bit_identical(threads):
     sigmas, rgbs, t0, t1, offsets, counts, bg = packed_samples(3, num_rays=400)
     sigmas.requires_grad_(True)
     rgbs.requires_grad_(True)
     cotangents = None
     results = []
-    before = num_threads()
-    try:
-        for threads in (1, 2):
-            set_num_threads(threads)
-            out = composite_rays(sigmas, rgbs, t0, t1, offsets, counts, bg, return_weights=True)
-            if cotangents is None:
-                g = torch.Generator().manual_seed(7)
-                cotangents = [torch.randn(x.shape, generator=g) for x in out]
-            results.append([x.detach() for x in out] + list(torch.autograd.grad(out, (sigmas, rgbs), cotangents)))
-    finally:
-        set_num_threads(before)
+    for n_threads in (1, 2):
+        threads(n_threads)
+        out = composite_rays(sigmas, rgbs, t0, t1, offsets, counts, bg, return_weights=True)
+        if cotangents is None:
+            g = torch.Generator().manual_seed(7)
+            cotangents = [torch.randn(x.shape, generator=g) for x in out]
+        results.append([x.detach() for x in out] + list(torch.autograd.grad(out, (sigmas, rgbs), cotangents)))
     for a, b in zip(*results):
         assert torch.equal(a, b)
 

@@ -5,7 +5,6 @@ import math
 import pytest
 import torch
 
-from warpnerf.device import num_threads, set_num_threads
 from warpnerf.ops.raymarch import MarchState, march_rays, march_rays_window
 from warpnerf.ops.reference.raymarch import march_rays as march_rays_ref
 from warpnerf.ops.reference.raymarch import march_rays_window as march_rays_window_ref
@@ -120,16 +119,12 @@ def test_rays_requiring_grad_are_left_alone():
     assert origins.grad is None and not s.t_starts.requires_grad
 
 
-def test_two_threads_bit_identical():
+def test_two_threads_bit_identical(threads):
     origins, dirs, bitfield, jitter = random_rays(4, num_rays=1000)
-    before = num_threads()
     results = []
-    try:
-        for threads in (1, 2):
-            set_num_threads(threads)
-            results.append(march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 6.0, 0.01, jitter=jitter))
-    finally:
-        set_num_threads(before)
+    for n_threads in (1, 2):
+        threads(n_threads)
+        results.append(march_rays(origins, dirs, AABB, bitfield, RES, 0.0, 6.0, 0.01, jitter=jitter))
     for a, b in zip(*results):
         assert torch.equal(a, b)
 
@@ -385,19 +380,15 @@ def test_window_march_resumes_only_rays_not_finished():
     assert torch.equal(counts_sub, counts[32:]) and torch.equal(sub.k, state.k[32:])
 
 
-def test_window_march_two_threads_bit_identical():
+def test_window_march_two_threads_bit_identical(threads):
     origins, dirs, bitfield, _ = random_rays(5, num_rays=1000)
-    before = num_threads()
     results = []
-    try:
-        for threads in (1, 2):
-            set_num_threads(threads)
-            state = MarchState.start(1000, 0.0, origins.device)
-            out = [march_rays_window(origins, dirs, state, 5, AABB, bitfield, RES, 0.0, 6.0, 0.01) for _ in range(3)]
-            valid = [torch.arange(5)[None, :] < n[:, None].long() for _, _, n in out]  # the rest is garbage
-            results.append([t for (ts, te, n), v in zip(out, valid) for t in (ts[v], te[v], n)] + list(state))
-    finally:
-        set_num_threads(before)
+    for n_threads in (1, 2):
+        threads(n_threads)
+        state = MarchState.start(1000, 0.0, origins.device)
+        out = [march_rays_window(origins, dirs, state, 5, AABB, bitfield, RES, 0.0, 6.0, 0.01) for _ in range(3)]
+        valid = [torch.arange(5)[None, :] < n[:, None].long() for _, _, n in out]  # the rest is garbage
+        results.append([t for (ts, te, n), v in zip(out, valid) for t in (ts[v], te[v], n)] + list(state))
     for a, b in zip(*results):
         assert torch.equal(a, b)
 

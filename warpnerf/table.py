@@ -124,7 +124,7 @@ def format_seed_gaps(scene: str, gaps: list[tuple[int, float]], key: str = "psnr
 
     values = [g for _, g in gaps]
     per_seed = ", ".join(f"{g:+.2f} (seed {s})" for s, g in gaps)
-    return (f"{scene}: {key.upper() if key == 'psnr' else key} w/ - w/o per seed {per_seed}; mean {statistics.mean(values):+.2f}, "
+    return (f"{scene}: {key.upper()} w/ - w/o per seed {per_seed}; mean {statistics.mean(values):+.2f}, "
             f"std {statistics.stdev(values):.2f}.")
 
 
