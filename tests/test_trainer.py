@@ -205,6 +205,15 @@ def test_config_precedence_and_errors(tmp_path):
         make_task(build_config("full").__class__(task="nope"))
 
 
+def test_occupancy_threshold_is_configurable():
+    """--occ-threshold reaches the grid (an optical thickness: the trainer's density_fn multiplies the
+    density by the marching step, as nerfacc's occ_eval_fn does); instant-ngp's 0.01 by default."""
+    assert make_trainer().occupancy.threshold == 0.01
+    assert make_trainer(occ_threshold=0.5).occupancy.threshold == 0.5
+    with pytest.raises(ConfigError, match="occ_threshold"):
+        build_config("full", overrides={"occ_threshold": -1.0})
+
+
 def test_non_finite_loss_is_a_clear_error():
     from warpnerf.trainer import TrainingError
 

@@ -119,6 +119,7 @@ class TrainConfig:
     occ_resolution: int = 128  # occupancy grid cells per axis
     occ_warmup: int = 256  # steps during which every cell is refreshed
     occ_update_every: int = 16  # steps between occupancy updates
+    occ_threshold: float = 0.01  # occupancy: a cell is empty when density x marching step < min(this, the grid's mean) (instant-ngp, nerfacc: 0.01)
     # instant-ngp samples 1/4 of the cells uniformly per update at 2^18 samples per step; at our 2^16
     # that update was ~20 % of a step. Every occupied cell is still re-sampled each update, so pruning
     # keeps its pace; only the discovery of new cells slows. lego full: 30.56 dB in 508 s with 1/16,
@@ -321,7 +322,7 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"occ_uniform_fraction must be in (0, 1], got {cfg.occ_uniform_fraction}")
     if not math.isfinite(cfg.cp_density_shift):
         raise ConfigError(f"cp_density_shift must be a finite number, got {cfg.cp_density_shift}")
-    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step"):
+    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step", "occ_threshold"):
         value = getattr(cfg, key)
         if value is not None and not (value >= 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a finite number >= 0, got {value}")

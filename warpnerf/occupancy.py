@@ -31,7 +31,9 @@ class OccupancyGrid:
     takes the larger sigma). During warm-up (step < ``warmup_steps``) every cell is picked;
     afterwards ``uniform_fraction`` * res^3 uniformly random cells (with repeats; instant-ngp
     and nerfacc: 1/4, the trainer's default 1/16) plus up to res^3 / 4 random currently
-    occupied cells. A cell is occupied when density > min(threshold, mean density).
+    occupied cells. A cell is occupied when density > min(threshold, mean density). The trainer's
+    ``density_fn`` returns optical thickness (density * the marching step there), as nerfacc's
+    ``occ_eval_fn`` does, so ``threshold`` is a thickness (instant-ngp and nerfacc: 0.01).
     Before the first update every cell is occupied, so an untrained model is sampled everywhere.
 
     Attributes:

@@ -54,8 +54,9 @@ class Trainer:
         mtrf = cfg.model == "mtrf"
         self.field = GridField(scene.aabb, encoder, cfg.hidden, cfg.geo_features,
                                density_shift=cfg.cp_density_shift if mtrf else 0.0).to(self.device)
-        self.occupancy = OccupancyGrid(scene.aabb, cfg.occ_resolution, self.device, warmup_steps=cfg.occ_warmup,
-                                       update_every=cfg.occ_update_every, uniform_fraction=cfg.occ_uniform_fraction)
+        self.occupancy = OccupancyGrid(scene.aabb, cfg.occ_resolution, self.device, threshold=cfg.occ_threshold,
+                                       warmup_steps=cfg.occ_warmup, update_every=cfg.occ_update_every,
+                                       uniform_fraction=cfg.occ_uniform_fraction)
         # the scene's ray space (ray map, box, marching bounds: DESIGN §6) is all the renderer needs
         self.renderer = Renderer(self.field, self.occupancy, scene.ray_space,
                                  cfg.render_step or default_step(scene.aabb, cfg.march_steps),
