@@ -13,7 +13,9 @@ Layout
   lines      (rows, 3)   vectors of length R: ``lines[offsets[l] + i, a]`` holds entry i of the
                          R lines of level l along axis a, i.e. a (rows, 3, R) tensor for torch
   out        (N, L)      vectors of length R, i.e. (N, L*R) for torch (level-major columns)
-  levels     (K,)        the level ids a launch covers; launches are level-major dim=(K, N)
+  levels     (K,)        the level ids a launch covers; dim = (K, ceil((stop - start) / chunk)),
+                         thread (j, c) handles level levels[j] for up to ``chunk`` points from
+                         start + c * chunk (CUDA: chunk 1; CPU: one loop per level, as the hash grid)
   weights    (L,)        G²fR level weights w_l; callers leave levels with w_l = 0 out of
                          ``levels``, so masked levels never touch ``lines``.
 
@@ -42,6 +44,16 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
     cell = hashgrid_cell64 if dtype == wp.float64 else hashgrid_cell
     one = dtype(1.0)
 
+    @wp.func
+    def encode_point(x: wp.array2d(dtype=dtype), lines: wp.array2d(dtype=vec), n: int, s: int, off: int):
+        bx, fx, dx_ = cell(x[n, 0], s)
+        by, fy, dy_ = cell(x[n, 1], s)
+        bz, fz, dz_ = cell(x[n, 2], s)
+        vx = (one - fx) * lines[off + bx, 0] + fx * lines[off + bx + 1, 0]
+        vy = (one - fy) * lines[off + by, 1] + fy * lines[off + by + 1, 1]
+        vz = (one - fz) * lines[off + bz, 2] + fz * lines[off + bz + 1, 2]
+        return wp.cw_mul(wp.cw_mul(vx, vy), vz)
+
     @wp.kernel(enable_backward=False, module="unique")
     def cpgrid_encode_fwd(
         x: wp.array2d(dtype=dtype),
@@ -51,20 +63,18 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
         offsets: wp.array(dtype=wp.int32),
         weights: wp.array(dtype=dtype),
         start: int,
+        stop: int,
+        chunk: int,
         out: wp.array2d(dtype=vec),
     ):
-        j, i = wp.tid()
+        j, c = wp.tid()
         lvl = levels[j]
-        n = start + i
         s = resolutions[lvl]
         off = offsets[lvl]
-        bx, fx, dx_ = cell(x[n, 0], s)
-        by, fy, dy_ = cell(x[n, 1], s)
-        bz, fz, dz_ = cell(x[n, 2], s)
-        vx = (one - fx) * lines[off + bx, 0] + fx * lines[off + bx + 1, 0]
-        vy = (one - fy) * lines[off + by, 1] + fy * lines[off + by + 1, 1]
-        vz = (one - fz) * lines[off + bz, 2] + fz * lines[off + bz + 1, 2]
-        out[n, lvl] = wp.cw_mul(wp.cw_mul(vx, vy), vz) * weights[lvl]
+        w = weights[lvl]
+        first = start + c * chunk
+        for n in range(first, wp.min(first + chunk, stop)):
+            out[n, lvl] = encode_point(x, lines, n, s, off) * w
 
     @wp.func
     def is_zero(g: vec):
@@ -75,29 +85,9 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
                 nonzero = 1
         return nonzero == 0
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def cpgrid_encode_bwd(
-        x: wp.array2d(dtype=dtype),
-        lines: wp.array2d(dtype=vec),
-        grad_out: wp.array2d(dtype=vec),
-        levels: wp.array(dtype=wp.int32),
-        resolutions: wp.array(dtype=wp.int32),
-        offsets: wp.array(dtype=wp.int32),
-        weights: wp.array(dtype=dtype),
-        want_lines: int,
-        want_x: int,
-        grad_lines: wp.array2d(dtype=vec),
-        grad_x: wp.array2d(dtype=dtype),
-    ):
-        j, n = wp.tid()
-        lvl = levels[j]
-        s = resolutions[lvl]
-        off = offsets[lvl]
-        g = grad_out[n, lvl] * weights[lvl]
-        if is_zero(g):
-            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
-            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
-            return
+    @wp.func
+    def scatter_point(x: wp.array2d(dtype=dtype), lines: wp.array2d(dtype=vec), g: vec, n: int, s: int, off: int,
+                      want_lines: int, want_x: int, grad_lines: wp.array2d(dtype=vec), grad_x: wp.array2d(dtype=dtype)):
         bx, fx, dx_ = cell(x[n, 0], s)
         by, fy, dy_ = cell(x[n, 1], s)
         bz, fz, dz_ = cell(x[n, 2], s)
@@ -129,5 +119,35 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
             wp.atomic_add(grad_x, n, 0, wp.dot(gx, hix - lox) * dx_)
             wp.atomic_add(grad_x, n, 1, wp.dot(gy, hiy - loy) * dy_)
             wp.atomic_add(grad_x, n, 2, wp.dot(gz, hiz - loz) * dz_)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def cpgrid_encode_bwd(
+        x: wp.array2d(dtype=dtype),
+        lines: wp.array2d(dtype=vec),
+        grad_out: wp.array2d(dtype=vec),
+        levels: wp.array(dtype=wp.int32),
+        resolutions: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        weights: wp.array(dtype=dtype),
+        want_lines: int,
+        want_x: int,
+        start: int,
+        stop: int,
+        chunk: int,
+        grad_lines: wp.array2d(dtype=vec),
+        grad_x: wp.array2d(dtype=dtype),
+    ):
+        j, c = wp.tid()
+        lvl = levels[j]
+        s = resolutions[lvl]
+        off = offsets[lvl]
+        w = weights[lvl]
+        first = start + c * chunk
+        for n in range(first, wp.min(first + chunk, stop)):
+            g = grad_out[n, lvl] * w
+            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
+            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
+            if not is_zero(g):
+                scatter_point(x, lines, g, n, s, off, want_lines, want_x, grad_lines, grad_x)
 
     return cpgrid_encode_fwd, cpgrid_encode_bwd, vec

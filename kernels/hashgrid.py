@@ -7,7 +7,12 @@ Layout
   x          (N, D)      input points in [0, 1]^D (clamped; D = 1, 2 or 3)
   table      (rows,)     feature vectors of length F, all levels in one flat table
   out        (N, L)      feature vectors of length F, i.e. (N, L*F) for torch
-  levels     (K,)        the level ids a launch covers; launches are level-major dim=(K, N)
+  levels     (K,)        the level ids a launch covers
+  launch     dim = (K, ceil((stop - start) / chunk)): thread (j, c) handles level levels[j] for
+             the points start + c * chunk ... (at most chunk of them, below stop). CUDA launches
+             chunk = 1 (a thread per point and level); CPU launches chunk = the whole range: one
+             loop per level over the points, so a level's table stays in cache while it is read
+             and no per-point thread index is decomposed (1.3-1.6x faster than a thread each).
   weights    (L,)        G²fR level weights w_m (paper eq. 15); callers leave levels with
                          w_m = 0 out of ``levels``, so masked levels never touch the table.
 
@@ -28,12 +33,21 @@ PRIME_Z = wp.constant(wp.uint32(805459861))
 
 
 @wp.func
-def hashgrid_row(ix: int, iy: int, iz: int, s: int, hashed: int, hash_mask: wp.uint32, offset: int):
-    """Flat table row of grid point (ix, iy, iz) of a level with s points per axis."""
+def hashgrid_axis_terms(base: int, multiplier: wp.uint32):
+    """Row terms of the lower and upper grid point along one axis: base * m and (base + 1) * m.
+
+    A corner's row combines one term per axis: hashed levels XOR them (Instant-NGP's spatial
+    hash, multipliers 1, PRIME_Y, PRIME_Z), dense levels add them (multipliers 1, s, s^2).
+    """
+    return wp.uint32(base) * multiplier, wp.uint32(base + 1) * multiplier
+
+
+@wp.func
+def hashgrid_row(tx: wp.uint32, ty: wp.uint32, tz: wp.uint32, hashed: int, hash_mask: wp.uint32, offset: int):
+    """Flat table row of the grid point whose axis terms are tx, ty, tz (see hashgrid_axis_terms)."""
     if hashed != 0:
-        h = wp.uint32(ix) ^ (wp.uint32(iy) * PRIME_Y) ^ (wp.uint32(iz) * PRIME_Z)
-        return offset + int(h & hash_mask)
-    return offset + ix + s * (iy + s * iz)
+        return offset + int((tx ^ ty ^ tz) & hash_mask)
+    return offset + int(tx + ty + tz)
 
 
 @wp.func
@@ -91,6 +105,37 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
             w = w * wp.where((c & 4) != 0, fz, one - fz)
         return w
 
+    @wp.func
+    def locate(x: wp.array2d(dtype=dtype), n: int, s: int, hashed: int):
+        """Cell of point n at a level of s points per axis: base point, fractions, d(position)/dx
+        and the axis multipliers of its rows (a missing axis: base 0, fraction 0, multiplier 0)."""
+        bx, fx, dx_ = cell(x[n, 0], s)
+        by, fy, dy_ = 0, zero, zero
+        bz, fz, dz_ = 0, zero, zero
+        my = wp.uint32(0)
+        mz = wp.uint32(0)
+        if wp.static(dim >= 2):
+            by, fy, dy_ = cell(x[n, 1], s)
+            my = wp.where(hashed != 0, PRIME_Y, wp.uint32(s))
+        if wp.static(dim >= 3):
+            bz, fz, dz_ = cell(x[n, 2], s)
+            mz = wp.where(hashed != 0, PRIME_Z, wp.uint32(s) * wp.uint32(s))
+        return bx, by, bz, fx, fy, fz, dx_, dy_, dz_, my, mz
+
+    @wp.func
+    def encode_point(x: wp.array2d(dtype=dtype), table: wp.array(dtype=vec), n: int, s: int, off: int, hsh: int,
+                     hash_mask: wp.uint32):
+        bx, by, bz, fx, fy, fz, dx_, dy_, dz_, my, mz = locate(x, n, s, hsh)
+        tx0, tx1 = hashgrid_axis_terms(bx, wp.uint32(1))
+        ty0, ty1 = hashgrid_axis_terms(by, my)
+        tz0, tz1 = hashgrid_axis_terms(bz, mz)
+        acc = vec()
+        for c in range(wp.static(n_corners)):
+            row = hashgrid_row(wp.where((c & 1) != 0, tx1, tx0), wp.where((c & 2) != 0, ty1, ty0),
+                               wp.where((c & 4) != 0, tz1, tz0), hsh, hash_mask, off)
+            acc = acc + corner_weight(c, fx, fy, fz) * table[row]
+        return acc
+
     @wp.kernel(enable_backward=False, module="unique")
     def hashgrid_encode_fwd(
         x: wp.array2d(dtype=dtype),
@@ -102,26 +147,19 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
         hash_mask: wp.uint32,
         weights: wp.array(dtype=dtype),
         start: int,
+        stop: int,
+        chunk: int,
         out: wp.array2d(dtype=vec),
     ):
-        j, i = wp.tid()
+        j, c = wp.tid()
         lvl = levels[j]
-        n = start + i
         s = resolutions[lvl]
         off = offsets[lvl]
         hsh = hashed[lvl]
-        bx, fx, dx_ = cell(x[n, 0], s)
-        by, fy, dy_ = 0, zero, zero
-        bz, fz, dz_ = 0, zero, zero
-        if wp.static(dim >= 2):
-            by, fy, dy_ = cell(x[n, 1], s)
-        if wp.static(dim >= 3):
-            bz, fz, dz_ = cell(x[n, 2], s)
-        acc = vec()
-        for c in range(wp.static(n_corners)):
-            row = hashgrid_row(bx + (c & 1), by + ((c >> 1) & 1), bz + ((c >> 2) & 1), s, hsh, hash_mask, off)
-            acc = acc + corner_weight(c, fx, fy, fz) * table[row]
-        out[n, lvl] = acc * weights[lvl]
+        w = weights[lvl]
+        first = start + c * chunk
+        for n in range(first, wp.min(first + chunk, stop)):
+            out[n, lvl] = encode_point(x, table, n, s, off, hsh, hash_mask) * w
 
     @wp.func
     def is_zero(g: vec):
@@ -132,39 +170,14 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
                 nonzero = 1
         return nonzero == 0
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def hashgrid_encode_bwd(
-        x: wp.array2d(dtype=dtype),
-        table: wp.array(dtype=vec),
-        grad_out: wp.array2d(dtype=vec),
-        levels: wp.array(dtype=wp.int32),
-        resolutions: wp.array(dtype=wp.int32),
-        offsets: wp.array(dtype=wp.int32),
-        hashed: wp.array(dtype=wp.int32),
-        hash_mask: wp.uint32,
-        weights: wp.array(dtype=dtype),
-        want_table: int,
-        want_x: int,
-        grad_table: wp.array(dtype=vec),
-        grad_x: wp.array2d(dtype=dtype),
-    ):
-        j, n = wp.tid()
-        lvl = levels[j]
-        s = resolutions[lvl]
-        off = offsets[lvl]
-        hsh = hashed[lvl]
-        g = grad_out[n, lvl] * weights[lvl]
-        if is_zero(g):
-            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
-            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
-            return
-        bx, fx, dx_ = cell(x[n, 0], s)
-        by, fy, dy_ = 0, zero, zero
-        bz, fz, dz_ = 0, zero, zero
-        if wp.static(dim >= 2):
-            by, fy, dy_ = cell(x[n, 1], s)
-        if wp.static(dim >= 3):
-            bz, fz, dz_ = cell(x[n, 2], s)
+    @wp.func
+    def scatter_point(x: wp.array2d(dtype=dtype), table: wp.array(dtype=vec), g: vec, n: int, s: int, off: int,
+                      hsh: int, hash_mask: wp.uint32, want_table: int, want_x: int, grad_table: wp.array(dtype=vec),
+                      grad_x: wp.array2d(dtype=dtype)):
+        bx, by, bz, fx, fy, fz, dx_, dy_, dz_, my, mz = locate(x, n, s, hsh)
+        tx0, tx1 = hashgrid_axis_terms(bx, wp.uint32(1))
+        ty0, ty1 = hashgrid_axis_terms(by, my)
+        tz0, tz1 = hashgrid_axis_terms(bz, mz)
         gx = zero
         gy = zero
         gz = zero
@@ -172,7 +185,8 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
             ux = (c & 1) != 0
             uy = (c & 2) != 0
             uz = (c & 4) != 0
-            row = hashgrid_row(bx + (c & 1), by + ((c >> 1) & 1), bz + ((c >> 2) & 1), s, hsh, hash_mask, off)
+            row = hashgrid_row(wp.where(ux, tx1, tx0), wp.where(uy, ty1, ty0), wp.where(uz, tz1, tz0), hsh,
+                               hash_mask, off)
             wx = wp.where(ux, fx, one - fx)
             wy = one
             wz = one
@@ -196,5 +210,38 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
                 wp.atomic_add(grad_x, n, 1, gy * dy_)
             if wp.static(dim >= 3):
                 wp.atomic_add(grad_x, n, 2, gz * dz_)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def hashgrid_encode_bwd(
+        x: wp.array2d(dtype=dtype),
+        table: wp.array(dtype=vec),
+        grad_out: wp.array2d(dtype=vec),
+        levels: wp.array(dtype=wp.int32),
+        resolutions: wp.array(dtype=wp.int32),
+        offsets: wp.array(dtype=wp.int32),
+        hashed: wp.array(dtype=wp.int32),
+        hash_mask: wp.uint32,
+        weights: wp.array(dtype=dtype),
+        want_table: int,
+        want_x: int,
+        start: int,
+        stop: int,
+        chunk: int,
+        grad_table: wp.array(dtype=vec),
+        grad_x: wp.array2d(dtype=dtype),
+    ):
+        j, c = wp.tid()
+        lvl = levels[j]
+        s = resolutions[lvl]
+        off = offsets[lvl]
+        hsh = hashed[lvl]
+        w = weights[lvl]
+        first = start + c * chunk
+        for n in range(first, wp.min(first + chunk, stop)):
+            g = grad_out[n, lvl] * w
+            # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
+            # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)
+            if not is_zero(g):
+                scatter_point(x, table, g, n, s, off, hsh, hash_mask, want_table, want_x, grad_table, grad_x)
 
     return hashgrid_encode_fwd, hashgrid_encode_bwd, vec

@@ -135,7 +135,7 @@ def test_trainer_weights_are_the_ones_the_kernel_receives(monkeypatch, model):
         if key.endswith("_encode_fwd") or key.endswith("_encode_bwd"):
             bwd = key.endswith("_bwd")
             at = 3 if bwd else 2
-            n_meta = len(inputs) - at - (6 if bwd else 4)  # what follows meta: weights (+ 2 flags + 2 grads | start + out)
+            n_meta = len(inputs) - at - (9 if bwd else 6)  # after meta: weights, (2 flags,) start, stop, chunk, outputs
             seen.append((bwd, tuple(inputs[at + 1 + n_meta].numpy().tolist()), inputs[at].numpy().tolist()))
         return real_launch(kernel, dim, inputs, device, outputs)
 
