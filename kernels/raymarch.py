@@ -115,6 +115,8 @@ def march_rays(
     far: float,
     step: float,
     max_samples: int,
+    box_min: wp.vec3,
+    box_max: wp.vec3,
     fill: int,
     ray_offsets: wp.array(dtype=wp.int32),
     ray_counts: wp.array(dtype=wp.int32),
@@ -123,21 +125,30 @@ def march_rays(
     t_ends: wp.array(dtype=float),
 ):
     """Count (``fill`` = 0: writes ray_counts) or emit (``fill`` = 1: writes the packed samples
-    at ray_offsets) the samples of rays [first_ray, first_ray + dim)."""
+    at ray_offsets) the samples of rays [first_ray, first_ray + dim).
+
+    Only candidates near the box ``[box_min, box_max]`` holding every occupied cell (the scene
+    box when unknown) are visited, as in :func:`march_rays_window`: the same samples, without
+    stepping through the empty rest of the scene box."""
     r = first_ray + wp.tid()
     o = rays_o[r]
     d = rays_d[r]
     span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
     t0 = span[0]
     t1 = span[1]
+    tight = ray_aabb_interval(o, d, box_min, box_max, near, far)
     n = int(0)
     # a non-finite ray or interval is a miss (NaN poses, an unbounded interval): 0 samples
-    if finite3(o) and finite3(d) and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0:
+    if finite3(o) and finite3(d) and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0 and tight[1] > tight[0]:
         u = float(0.0)
         if has_jitter != 0:
             u = jitter[r]
         base, limit = sample_slots(fill, r, max_samples, ray_offsets, ray_counts)
-        k = int(0)
+        # a candidate's midpoint t0 + (k + u + 1/2) step lies in the occupied box only between
+        # tight[0] and tight[1]: start one step before the first such k and stop one step past the
+        # box (margins far above float rounding); t0 + (k + u) step is computed as in a full march
+        k = wp.max(0, int(wp.floor((tight[0] - t0) / step - 0.5)) - 1)
+        t1 = wp.min(t1, tight[1] + step)
         while n < limit and k < MAX_STEPS:
             ts = t0 + (float(k) + u) * step
             if ts >= t1:

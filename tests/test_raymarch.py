@@ -362,6 +362,58 @@ def test_window_march_near_the_occupied_box_yields_the_same_samples(window):
     check_windows(origins, dirs, window, args, dict(occupied_box=box), min_samples=300)
 
 
+@pytest.mark.parametrize("use_jitter", [False, True])
+def test_march_near_the_occupied_box_yields_the_same_samples(use_jitter):
+    """march_rays with ``occupied_box`` (what training passes) skips the candidates far from the
+    occupied cells and emits exactly the samples of the full march, also for rays that graze
+    the box's faces and for a box computed by the occupancy grid itself."""
+    from warpnerf.occupancy import OccupancyGrid
+
+    origins, dirs, _, jitter = random_rays(7, 1000)
+    res = 16
+    grid = OccupancyGrid(AABB, resolution=res)
+    bits = torch.zeros(res, res, res, dtype=torch.uint8)
+    g = torch.Generator().manual_seed(7)
+    bits[5:11, 3:9, 7:13] = (torch.rand(6, 6, 6, generator=g) < 0.5).to(torch.uint8)
+    bits[5, 3, 7] = bits[10, 8, 12] = 1  # the box's corner cells, so it is exactly [5, 11) x [3, 9) x [7, 13)
+    grid.bitfield.copy_(bits.flatten())
+    box = grid.occupied_box()
+    lo, hi = torch.tensor(AABB[:3]), torch.tensor(AABB[3:])
+    assert torch.allclose(torch.tensor(box[:3]), lo + (hi - lo) * torch.tensor([5, 3, 7]) / res)
+    # rays along the box's faces and edges: origins on a face plane, directions within it
+    face = torch.tensor(box[:3]).expand(200, 3).clone()
+    face[:, 1:] += torch.rand(200, 2, generator=g) * (torch.tensor(box[4:]) - torch.tensor(box[1:3]))
+    face_dirs = torch.nn.functional.normalize(torch.cat([torch.zeros(200, 1), torch.randn(200, 2, generator=g)], 1), dim=1)
+    o, d = torch.cat([origins, face - 3 * face_dirs]), torch.cat([dirs, face_dirs])
+    jit = torch.cat([jitter, torch.rand(200, generator=g)]) if use_jitter else None
+    args = (o, d, AABB, grid.bitfield, res, 0.3, 8.0, 0.01)
+    full = march_rays(*args, jitter=jit)
+    tight = march_rays(*args, jitter=jit, occupied_box=box)
+    ref = march_rays_ref(*args, jitter=jit, occupied_box=box)
+    assert full.t_starts.numel() > 2000
+    for name, a, b, c in zip(full._fields, full, tight, ref):
+        assert torch.equal(a, b) and torch.equal(a, c), name
+
+
+def test_occupied_box_follows_every_change_of_the_bitfield():
+    """The grid computes its occupied box once per bitfield state: a grid update, an in-place
+    torch change and a new tensor each give a fresh box."""
+    from warpnerf.occupancy import OccupancyGrid
+
+    grid = OccupancyGrid((0, 0, 0, 1, 1, 1), resolution=8)
+    assert grid.occupied_box() == (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    grid.bitfield.zero_()
+    assert grid.occupied_box() is None
+    grid.bitfield[(2 * 8 + 3) * 8 + 4] = 1
+    assert grid.occupied_box() == (0.25, 0.375, 0.5, 0.375, 0.5, 0.625)
+    ball = lambda x: 100.0 * ((x - 0.5).norm(dim=-1) < 0.2).float()
+    grid.update(step=0, density_fn=ball, generator=torch.Generator().manual_seed(0))
+    lo, hi = grid.occupied_box()[:3], grid.occupied_box()[3:]
+    assert all(0.2 <= a < 0.5 < b <= 0.8 for a, b in zip(lo, hi))
+    grid.bitfield = torch.ones_like(grid.bitfield)
+    assert grid.occupied_box() == (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+
+
 def test_window_march_resumes_only_rays_not_finished():
     """A finished ray (k = -1) gets no samples and keeps its state; a subset of rays marched
     with ``MarchState.select`` continues where it stopped."""

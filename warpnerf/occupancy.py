@@ -78,6 +78,8 @@ class OccupancyGrid:
         num_cells = self.resolution**3
         self.density = torch.zeros(num_cells, dtype=torch.float32, device=self.device)
         self.bitfield = torch.ones(num_cells, dtype=torch.uint8, device=self.device)
+        self._updates = 0  # Warp writes the bitfield without bumping torch's version counter
+        self._box_key, self._box = None, None
 
     @property
     def num_cells(self) -> int:
@@ -124,6 +126,7 @@ class OccupancyGrid:
         launch(occupancy_ema, self.num_cells, [as_warp(fresh), self.decay, as_warp(self.density)], self.device)
         threshold = min(self.threshold, float(self.density.mean()))
         launch(occupancy_bitfield, self.num_cells, [as_warp(self.density), threshold, as_warp(self.bitfield)], self.device)
+        self._updates += 1
 
     def occupied_fraction(self) -> float:
         """Fraction of cells currently marked occupied, in [0, 1]."""
@@ -131,7 +134,14 @@ class OccupancyGrid:
 
     def occupied_box(self) -> Optional[tuple]:
         """The box (6 floats, the grid's coordinates) bounding every occupied cell; None when no
-        cell is occupied."""
+        cell is occupied. Computed once per bitfield state (an update, or any in-place torch
+        change of ``bitfield``, or a new tensor, starts a new one): the trainer asks every step."""
+        key = (self._updates, self.bitfield.data_ptr(), self.bitfield._version)
+        if key != self._box_key:
+            self._box_key, self._box = key, self._compute_occupied_box()
+        return self._box
+
+    def _compute_occupied_box(self) -> Optional[tuple]:
         res = self.resolution
         grid = self.bitfield.view(res, res, res)
         bounds = []

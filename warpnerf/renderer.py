@@ -123,7 +123,8 @@ class Renderer:
             packed, n_marched = march_rays_within_budget(
                 o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
                 self.occupancy.resolution, self.near, self.far, self.step, self.max_samples_per_ray, jitter,
-                max_total_samples=self.sample_budget, contract=self.ray_space.is_contracted)
+                max_total_samples=self.sample_budget, contract=self.ray_space.is_contracted,
+                occupied_box=self.occupancy.occupied_box())  # same samples, fewer empty steps
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
         x = self.ray_space.to_field(gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray))

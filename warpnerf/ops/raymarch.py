@@ -49,6 +49,7 @@ def march_rays(
     max_samples_per_ray: int = 1024,
     jitter: Optional[torch.Tensor] = None,
     contract: bool = False,
+    occupied_box: Optional[Sequence[float]] = None,
 ) -> PackedSamples:
     """March rays through the occupied cells of the scene box with a fixed step.
 
@@ -80,6 +81,9 @@ def march_rays(
             contracted space (world steps ~ ``step_size * |x|^2`` on rays leaving the scene)
             and the occupancy cell is the one of the *contracted* midpoint, ``aabb`` being the
             grid's box in contracted space (``(-2, -2, -2, 2, 2, 2)``).
+        occupied_box: optional 6 floats bounding every occupied cell
+            (:meth:`~warpnerf.occupancy.OccupancyGrid.occupied_box`): rays then skip the candidates
+            far from it. The samples are the same with or without it (ignored when ``contract``).
     Returns:
         :class:`PackedSamples` on the device of ``rays_o``. Not differentiable: the outputs carry
         no gradient w.r.t. the rays; recompute positions as ``o[ray] + t * d[ray]`` in torch.
@@ -91,7 +95,7 @@ def march_rays(
         [2.0, 2.5, 3.0, 3.5]
     """
     return march_rays_within_budget(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
-                                    max_samples_per_ray, jitter, contract=contract)[0]
+                                    max_samples_per_ray, jitter, contract=contract, occupied_box=occupied_box)[0]
 
 
 def march_rays_within_budget(
@@ -107,6 +111,7 @@ def march_rays_within_budget(
     jitter: Optional[torch.Tensor] = None,
     max_total_samples: Optional[int] = None,
     contract: bool = False,
+    occupied_box: Optional[Sequence[float]] = None,
 ) -> tuple[PackedSamples, int]:
     """:func:`march_rays` with a cap on the packed samples of the whole batch (a memory bound).
 
@@ -138,6 +143,8 @@ def march_rays_within_budget(
     jitter_t = jitter if jitter is not None else empty_f.new_zeros(1)
     offsets = torch.zeros(num_rays, dtype=torch.int32, device=device)
     box = [wp.vec3(*lo)] if contract else [wp.vec3(*lo), wp.vec3(*hi)]
+    # the uniform march visits only candidates near the occupied cells' box (same samples)
+    tight = [] if contract else [wp.vec3(*v) for v in _padded_box(occupied_box, lo, hi)]
     head = [
         as_warp(rays_o, wp.vec3),
         as_warp(rays_d, wp.vec3),
@@ -151,6 +158,7 @@ def march_rays_within_budget(
         far,
         step_size,
         int(max_samples_per_ray),
+        *tight,
     ]
     ws_counts = as_warp(counts)
     ws_offsets = as_warp(offsets)
@@ -178,6 +186,16 @@ def march_rays_within_budget(
         outs = [as_warp(ray_indices), as_warp(t_starts), as_warp(t_ends)]
         launch_over_rays(kernel, num_rays, head + [1, ws_offsets, ws_counts, *outs], device)
     return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts), keep
+
+
+def _padded_box(occupied_box, lo: list, hi: list) -> tuple[list, list]:
+    """(min, max) corners of ``occupied_box`` grown by 1e-4 of the scene box per side (a margin
+    far above float rounding, so a ray grazing a face is never cut short), or the scene box."""
+    if occupied_box is None:
+        return lo, hi
+    box_lo, box_hi = aabb_floats(occupied_box)
+    pad = [1e-4 * (h - l) for l, h in zip(lo, hi)]
+    return [b - p for b, p in zip(box_lo, pad)], [b + p for b, p in zip(box_hi, pad)]
 
 
 class MarchState(NamedTuple):
@@ -242,7 +260,7 @@ def march_rays_window(
         if v.dtype != dtype or tuple(v.shape) != (num_rays,) or v.device != device or not v.is_contiguous():
             raise ValueError(f"march_rays_window: state.{name} must be a contiguous ({num_rays},) {dtype} tensor "
                              f"on {device}, got {tuple(v.shape)} {v.dtype} on {v.device}")
-    box_lo, box_hi = aabb_floats(occupied_box) if occupied_box is not None and not contract else (lo, hi)
+    box_lo, box_hi = _padded_box(None if contract else occupied_box, lo, hi)
     counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
     t_starts = torch.empty(num_rays, window, dtype=torch.float32, device=device)
     t_ends = torch.empty(num_rays, window, dtype=torch.float32, device=device)

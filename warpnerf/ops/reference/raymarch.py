@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..launch import aabb_floats
-from ..raymarch import MAX_STEPS_PER_RAY, MarchState, PackedSamples, rays_within_budget
+from ..raymarch import MAX_STEPS_PER_RAY, MarchState, PackedSamples, _padded_box, rays_within_budget
 
 __all__ = ["march_rays", "march_rays_within_budget", "march_rays_window"]
 
@@ -30,8 +30,10 @@ def march_rays(
     max_samples_per_ray: int = 1024,
     jitter: Optional[torch.Tensor] = None,
     contract: bool = False,
+    occupied_box: Optional[Sequence[float]] = None,
 ) -> PackedSamples:
-    """See :func:`warpnerf.ops.raymarch.march_rays`; results are identical."""
+    """See :func:`warpnerf.ops.raymarch.march_rays`; results are identical. ``occupied_box`` only
+    lets the Warp march skip candidates that are never samples: the twin marches them all."""
     if contract:
         return _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
                                       max_samples_per_ray, jitter)
@@ -98,7 +100,7 @@ def march_rays_window(rays_o, rays_d, state: MarchState, window: int, aabb, occ_
     k = state.k.long()
     if not contract:
         f32b = lambda v: torch.tensor(v, dtype=torch.float32, device=device)
-        tight_lo, tight_hi = aabb_floats(occupied_box) if occupied_box is not None else aabb_floats(aabb)
+        tight_lo, tight_hi = _padded_box(occupied_box, *aabb_floats(aabb))
         tt0, tt1, _ = _box_interval(rays_o, rays_d, f32b(tight_lo), f32b(tight_hi), near_t, far_t)
         usable = ok & torch.isfinite(t0) & torch.isfinite(t1)
         t1 = torch.where(usable & (tt1 > tt0), torch.minimum(t1, tt1 + step), t1)
@@ -181,6 +183,7 @@ def march_rays_within_budget(
     jitter: Optional[torch.Tensor] = None,
     max_total_samples: Optional[int] = None,
     contract: bool = False,
+    occupied_box: Optional[Sequence[float]] = None,
 ) -> tuple[PackedSamples, int]:
     """See :func:`warpnerf.ops.raymarch.march_rays_within_budget`; results are identical."""
     packed = march_rays(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
