@@ -31,7 +31,8 @@ def trained_full():
 def test_tiny_scene_trains_to_psnr_threshold(trained_full, tmp_path):
     trainer = trained_full
     res = evaluate(trainer, str(tmp_path), progress=False)
-    # measured: 24.7 dB on the 4 held-out views after 300 steps (25.0 without the 30-step lr warm-up)
+    # measured on the 4 held-out views after 300 steps: 24.7 dB when written; 22.34 dB since the random
+    # backgrounds and occupancy changes (seeds 1, 2 of the same fixture: 23.73, 23.21), so the margin is thin
     assert res["psnr"] > 22.0, res["psnr"]
     assert res["ssim"] > 0.8
     assert trainer.history["psnr"][-1] > trainer.history["psnr"][0] + 8
