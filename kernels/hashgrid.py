@@ -8,13 +8,13 @@ Layout
   table      (rows,)     feature vectors of length F, all levels in one flat table
   out        (N, L)      feature vectors of length F, i.e. (N, L*F) for torch
   levels     (K,)        the level ids a launch covers
+  weights    (L,)        G²fR level weights w_m (paper eq. 15); callers leave levels with
+                         w_m = 0 out of ``levels``, so masked levels never touch the table.
   launch     dim = (K, ceil((stop - start) / chunk)): thread (j, c) handles level levels[j] for
              the points start + c * chunk ... (at most chunk of them, below stop). CUDA launches
              chunk = 1 (a thread per point and level); CPU launches chunk = the whole range: one
              loop per level over the points, so a level's table stays in cache while it is read
              and no per-point thread index is decomposed (1.3-1.6x faster than a thread each).
-  weights    (L,)        G²fR level weights w_m (paper eq. 15); callers leave levels with
-                         w_m = 0 out of ``levels``, so masked levels never touch the table.
 
 Kernels are generated per (D, F, dtype) by :func:`make_hashgrid_kernels`; float64 exists for
 gradcheck. Backward is hand written: one kernel scatters into the table gradient and,

@@ -221,8 +221,8 @@ class GridLauncher:
         out_wp = self._view(out, self.vec)
         # a gather: every output written once, so splitting by points is thread-count independent
         chunks = split_range(n, num_threads()) if self.on_cpu else [(0, n)]
-        run_chunks([lambda lo=lo, hi=hi: launch(self.fwd, self._dim(len(active), hi - lo), [*head, *self._span(lo, hi), out_wp],
-                                                x.device)
+        run_chunks([lambda lo=lo, hi=hi: launch(self.fwd, self._dim(len(active), hi - lo),
+                                                [*head, *self._span(lo, hi), out_wp], x.device)
                     for lo, hi in chunks])
         return out.view(n, n_levels * n_features)
 
