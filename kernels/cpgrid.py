@@ -32,7 +32,7 @@ import functools
 
 import warp as wp
 
-from .hashgrid import hashgrid_cell, hashgrid_cell64
+from .hashgrid import chunk_points, hashgrid_cell, hashgrid_cell64
 
 
 @functools.lru_cache(maxsize=None)
@@ -72,8 +72,8 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
         s = resolutions[lvl]
         off = offsets[lvl]
         w = weights[lvl]
-        first = start + c * chunk
-        for n in range(first, wp.min(first + chunk, stop)):
+        first, end = chunk_points(c, start, stop, chunk)
+        for n in range(first, end):
             out[n, lvl] = encode_point(x, lines, n, s, off) * w
 
     @wp.func
@@ -142,8 +142,8 @@ def make_cpgrid_kernels(rank: int, dtype=wp.float32):
         s = resolutions[lvl]
         off = offsets[lvl]
         w = weights[lvl]
-        first = start + c * chunk
-        for n in range(first, wp.min(first + chunk, stop)):
+        first, end = chunk_points(c, start, stop, chunk)
+        for n in range(first, end):
             g = grad_out[n, lvl] * w
             # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
             # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)

@@ -51,6 +51,14 @@ def hashgrid_row(tx: wp.uint32, ty: wp.uint32, tz: wp.uint32, hashed: int, hash_
 
 
 @wp.func
+def chunk_points(c: int, start: int, stop: int, chunk: int):
+    """[first, end) of the points thread column c handles: up to ``chunk`` points from
+    start + c * chunk, below ``stop`` (the grid kernels' launch layout, module docstring)."""
+    first = start + c * chunk
+    return first, wp.min(first + chunk, stop)
+
+
+@wp.func
 def hashgrid_cell(u: float, s: int):
     """Base grid point, fraction and d(position)/du for one coordinate u at a level of s points.
 
@@ -157,8 +165,8 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
         off = offsets[lvl]
         hsh = hashed[lvl]
         w = weights[lvl]
-        first = start + c * chunk
-        for n in range(first, wp.min(first + chunk, stop)):
+        first, end = chunk_points(c, start, stop, chunk)
+        for n in range(first, end):
             out[n, lvl] = encode_point(x, table, n, s, off, hsh, hash_mask) * w
 
     @wp.func
@@ -236,8 +244,8 @@ def make_hashgrid_kernels(dim: int, n_features: int, dtype=wp.float32):
         off = offsets[lvl]
         hsh = hashed[lvl]
         w = weights[lvl]
-        first = start + c * chunk
-        for n in range(first, wp.min(first + chunk, stop)):
+        first, end = chunk_points(c, start, stop, chunk)
+        for n in range(first, end):
             g = grad_out[n, lvl] * w
             # a sample the compositing ignores (behind an opaque surface, T < eps) gets an exact
             # zero gradient: skipping it leaves every sum unchanged (instant-ngp drops such samples)

@@ -73,6 +73,20 @@ def ray_aabb_interval(o: wp.vec3, d: wp.vec3, aabb_min: wp.vec3, aabb_max: wp.ve
 
 
 @wp.func
+def occupied_box_span(o: wp.vec3, d: wp.vec3, t0: float, t1: float, box_min: wp.vec3, box_max: wp.vec3, near: float,
+                      far: float, step: float):
+    """(first candidate step, end of the march) of a uniform march over [t0, t1] that visits only the
+    candidates whose midpoints can lie in the box [box_min, box_max] around the occupied cells:
+    start one step before the first such candidate and stop one step past the box (margins far
+    above float rounding); the candidate grid t0 + k step is unchanged, so are the samples.
+    First step -1: the ray misses that box (no candidate is ever a sample)."""
+    tight = ray_aabb_interval(o, d, box_min, box_max, near, far)
+    if not (tight[1] > tight[0]):
+        return -1, t1
+    return wp.max(0, int(wp.floor((tight[0] - t0) / step - 0.5)) - 1), wp.min(t1, tight[1] + step)
+
+
+@wp.func
 def occupied(p: wp.vec3, aabb_min: wp.vec3, grid_scale: wp.vec3, occ_bitfield: wp.array(dtype=wp.uint8), res: int):
     """Point p (the grid's space) lies in an occupied cell of the grid (False outside it)."""
     c = cell_index(grid_coords(p, aabb_min, grid_scale), res)
@@ -136,20 +150,16 @@ def march_rays(
     span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
     t0 = span[0]
     t1 = span[1]
-    tight = ray_aabb_interval(o, d, box_min, box_max, near, far)
     n = int(0)
     # a non-finite ray or interval is a miss (NaN poses, an unbounded interval): 0 samples
-    if finite3(o) and finite3(d) and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0 and tight[1] > tight[0]:
+    if finite3(o) and finite3(d) and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0:
+        # jitter shifts candidates by less than a step: occupied_box_span's one-step margins cover it
+        k, t1 = occupied_box_span(o, d, t0, t1, box_min, box_max, near, far, step)
         u = float(0.0)
         if has_jitter != 0:
             u = jitter[r]
         base, limit = sample_slots(fill, r, max_samples, ray_offsets, ray_counts)
-        # a candidate's midpoint t0 + (k + u + 1/2) step lies in the occupied box only between
-        # tight[0] and tight[1]: start one step before the first such k and stop one step past the
-        # box (margins far above float rounding); t0 + (k + u) step is computed as in a full march
-        k = wp.max(0, int(wp.floor((tight[0] - t0) / step - 0.5)) - 1)
-        t1 = wp.min(t1, tight[1] + step)
-        while n < limit and k < MAX_STEPS:
+        while k >= 0 and n < limit and k < MAX_STEPS:  # k = -1: the ray misses the occupied box
             ts = t0 + (float(k) + u) * step
             if ts >= t1:
                 break
@@ -285,16 +295,12 @@ def march_rays_window(
             span = ray_aabb_interval(o, d, aabb_min, aabb_max, near, far)
             t0 = span[0]
             t1 = span[1]
-            # candidates whose midpoints lie outside the occupied cells' box [box_min, box_max] are
-            # never samples: start at the last candidate before it and stop one step past it (a
-            # margin far above float rounding), on the same candidate grid t0 + k step
-            tight = ray_aabb_interval(o, d, box_min, box_max, near, far)
-            if not (tight[1] > tight[0]):
-                ok = False
-            elif ok and wp.isfinite(t0) and wp.isfinite(t1):
-                t1 = wp.min(t1, tight[1] + step)
-                if k == 0:
-                    k = wp.max(0, int(wp.floor((tight[0] - t0) / step - 0.5)) - 1)
+            if ok and wp.isfinite(t0) and wp.isfinite(t1):
+                first, t1 = occupied_box_span(o, d, t0, t1, box_min, box_max, near, far, step)
+                if first < 0:
+                    ok = False
+                elif k == 0:
+                    k = first
         if not (ok and wp.isfinite(t0) and wp.isfinite(t1) and t1 > t0):
             k = -1
         else:
