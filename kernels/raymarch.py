@@ -94,6 +94,37 @@ def occupied(p: wp.vec3, aabb_min: wp.vec3, grid_scale: wp.vec3, occ_bitfield: w
 
 
 @wp.func
+def empty_block_skip(g: wp.vec3, d: wp.vec3, tm: float, grid_scale: wp.vec3, res: int,
+                     blocks: wp.array(dtype=wp.uint8), block: int, t0: float, u: float, step: float, k: int):
+    """Next candidate step after candidate k, whose midpoint ``tm`` lies in the grid at grid
+    coordinates ``g`` in an empty cell: k + 1, or
+    when that midpoint's block of ``block``^3 cells holds no occupied cell, the first candidate
+    whose midpoint can be outside the block (every candidate skipped has its midpoint inside
+    the empty block, so none is a sample: the same samples as stepping through it).
+
+    ``blocks``: (nb^3,) uint8, nb = ceil(res / block), 1 where some cell of the block is occupied,
+    flat index (bx * nb + by) * nb + bz with b = floor(cell / block). The exit is taken 1e-3 cells
+    inside the block's faces (far above float rounding of the grid coordinates, which stay < res)."""
+    nb = (res + block - 1) // block
+    bx = int(wp.floor(g[0])) // block
+    by = int(wp.floor(g[1])) // block
+    bz = int(wp.floor(g[2])) // block
+    if blocks[(bx * nb + by) * nb + bz] != wp.uint8(0):
+        return k + 1
+    gd = wp.cw_mul(d, grid_scale)  # grid cells per unit of t
+    b = wp.vec3(float(bx), float(by), float(bz)) * float(block)
+    dt = float(3.4e38)
+    for a in range(3):
+        if gd[a] > 0.0:
+            dt = wp.min(dt, (b[a] + float(block) - 1.0e-3 - g[a]) / gd[a])
+        elif gd[a] < 0.0:
+            dt = wp.min(dt, (b[a] + 1.0e-3 - g[a]) / gd[a])
+    # first j with midpoint t0 + (j + u + 0.5) step >= tm + dt; cap the jump: a ray along a face
+    j = wp.ceil(wp.min((tm + dt - t0) / step - u - 0.5, float(MAX_STEPS)))
+    return wp.max(k + 1, int(j))
+
+
+@wp.func
 def sample_slots(fill: int, r: int, max_samples: int, ray_offsets: wp.array(dtype=wp.int32),
                  ray_counts: wp.array(dtype=wp.int32)):
     """(first packed slot, most samples) of ray r: the count pass may keep up to ``max_samples``;
@@ -131,6 +162,8 @@ def march_rays(
     max_samples: int,
     box_min: wp.vec3,
     box_max: wp.vec3,
+    blocks: wp.array(dtype=wp.uint8),
+    block: int,
     fill: int,
     ray_offsets: wp.array(dtype=wp.int32),
     ray_counts: wp.array(dtype=wp.int32),
@@ -164,10 +197,17 @@ def march_rays(
             if ts >= t1:
                 break
             te = wp.min(ts + step, t1)
-            if occupied(o + d * (0.5 * (ts + te)), aabb_min, grid_scale, occ_bitfield, res):
+            tm = 0.5 * (ts + te)
+            g = grid_coords(o + d * tm, aabb_min, grid_scale)
+            c = cell_index(g, res)
+            if c >= 0 and occ_bitfield[c] != wp.uint8(0):
                 store_sample(fill, base + n, r, ts, te, ray_indices, t_starts, t_ends)
                 n += 1
-            k += 1
+                k += 1
+            elif c >= 0:
+                k = empty_block_skip(g, d, tm, grid_scale, res, blocks, block, t0, u, step, k)
+            else:
+                k += 1
     if fill == 0:
         ray_counts[r] = n
 
@@ -264,6 +304,8 @@ def march_rays_window(
     window: int,
     box_min: wp.vec3,
     box_max: wp.vec3,
+    blocks: wp.array(dtype=wp.uint8),
+    block: int,
     ray_k: wp.array(dtype=wp.int32),
     ray_t: wp.array(dtype=float),
     ray_taken: wp.array(dtype=wp.int32),
@@ -321,12 +363,18 @@ def march_rays_window(
                 else:
                     te = wp.min(ts + contracted_step(o, d, ts, step), t1)
                     p = contract_point(o + d * (0.5 * (ts + te)))
-                if occupied(p, aabb_min, grid_scale, occ_bitfield, res):
+                g = grid_coords(p, aabb_min, grid_scale)
+                c = cell_index(g, res)
+                if c >= 0 and occ_bitfield[c] != wp.uint8(0):
                     t_starts[r * window + n] = ts
                     t_ends[r * window + n] = te
                     n += 1
+                    k += 1
+                elif c >= 0 and contract == 0:
+                    k = empty_block_skip(g, d, 0.5 * (ts + te), grid_scale, res, blocks, block, t0, 0.0, step, k)
+                else:
+                    k += 1
                 ts = te
-                k += 1
             if taken + n >= max_samples:
                 k = -1
             ray_t[r] = ts

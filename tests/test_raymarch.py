@@ -395,6 +395,82 @@ def test_march_near_the_occupied_box_yields_the_same_samples(use_jitter):
         assert torch.equal(a, b) and torch.equal(a, c), name
 
 
+def clustered_grid(res: int, seed: int) -> torch.Tensor:
+    """(res^3,) bitfield with occupied cells in a few clusters and large empty regions between
+    them, so many blocks of cells are empty and many are partly occupied."""
+    g = torch.Generator().manual_seed(seed)
+    bits = torch.zeros(res, res, res, dtype=torch.uint8)
+    for _ in range(8):
+        c = torch.randint(0, res - res // 4, (3,), generator=g).tolist()
+        n = torch.randint(1, res // 4 + 1, (3,), generator=g).tolist()
+        bits[c[0]:c[0] + n[0], c[1]:c[1] + n[1], c[2]:c[2] + n[2]] = 1
+    bits.view(-1)[torch.randint(0, res**3, (res,), generator=g)] = 1  # isolated cells
+    return bits.flatten()
+
+
+@pytest.mark.parametrize("res,block", [(32, 8), (20, 8), (16, 4), (16, 16)])
+@pytest.mark.parametrize("use_jitter", [False, True])
+def test_march_across_empty_blocks_yields_the_same_samples(res, block, use_jitter):
+    """With ``occupied_blocks`` the march jumps across blocks of cells that hold no occupied cell
+    instead of testing every candidate there: exactly the samples of the full march, for any
+    block size (also one that does not divide the resolution), with or without jitter and for
+    rays along the box's axes (d_a = 0)."""
+    from warpnerf.occupancy import OccupancyGrid
+
+    origins, dirs, _, jitter = random_rays(8, 1500)
+    grid = OccupancyGrid(AABB, resolution=res)
+    grid.bitfield.copy_(clustered_grid(res, res + block))
+    blocks = grid.occupied_blocks(block)
+    assert 0.05 < float(blocks[1].float().mean()) < 0.9 or block == res  # some blocks empty, some not
+    jit = jitter if use_jitter else None
+    args = (origins, dirs, AABB, grid.bitfield, res, 0.3, 8.0, 0.004)
+    full = march_rays(*args, jitter=jit)
+    skipped = march_rays(*args, jitter=jit, occupied_blocks=blocks)
+    both = march_rays(*args, jitter=jit, occupied_blocks=blocks, occupied_box=grid.occupied_box())
+    assert full.t_starts.numel() > 2000
+    for name, a, b, c in zip(full._fields, full, skipped, both):
+        assert torch.equal(a, b) and torch.equal(a, c), name
+
+
+@pytest.mark.parametrize("window", [1, 5])
+def test_window_march_across_empty_blocks_yields_the_same_samples(window):
+    """The rendering march with ``occupied_blocks`` and ``occupied_box``: window after window the
+    samples of the full march, and the same counts and resume state as the twin."""
+    from warpnerf.occupancy import OccupancyGrid
+
+    origins, dirs, _, _ = random_rays(9, 600)
+    grid = OccupancyGrid(AABB, resolution=24)
+    grid.bitfield.copy_(clustered_grid(24, 1))
+    assert 0.1 < float(grid.occupied_blocks(8)[1].float().mean()) < 0.9
+    args = (AABB, grid.bitfield, 24, 0.3, 3.5, 0.006, 1024)
+    check_windows(origins, dirs, window, args, dict(occupied_blocks=grid.occupied_blocks(8),
+                                                    occupied_box=grid.occupied_box()), min_samples=300)
+
+
+def test_occupied_blocks_mark_every_block_with_an_occupied_cell():
+    """Block (bx, by, bz) is 1 exactly when some cell (x, y, z) with x // b = bx, ... is occupied
+    (brute force over the cells); blocks past the grid's edge (res not a multiple of b) count
+    only the cells inside; the blocks follow every change of the bitfield like the box."""
+    from warpnerf.occupancy import OccupancyGrid
+
+    res, b = 20, 8
+    grid = OccupancyGrid((0, 0, 0, 1, 1, 1), resolution=res)
+    assert bool(grid.occupied_blocks(b)[1].all())  # a new grid is fully occupied
+    bits = clustered_grid(res, 3)
+    grid.bitfield.copy_(bits)
+    block, got = grid.occupied_blocks(b)
+    nb = 3
+    want = torch.zeros(nb, nb, nb, dtype=torch.uint8)
+    for x, y, z in torch.nonzero(bits.view(res, res, res)).tolist():
+        want[x // b, y // b, z // b] = 1
+    assert block == b and got.shape == (nb**3,) and torch.equal(got, want.flatten())
+    grid.bitfield.zero_()
+    assert int(grid.occupied_blocks(b)[1].sum()) == 0
+    with pytest.raises(ValueError, match="occupied_blocks"):
+        march_rays(torch.zeros(1, 3), torch.ones(1, 3) / 3**0.5, (0, 0, 0, 1, 1, 1), grid.bitfield, res, 0.0, 2.0,
+                   0.1, occupied_blocks=(4, got))
+
+
 def test_occupied_box_follows_every_change_of_the_bitfield():
     """The grid computes its occupied box once per bitfield state: a grid update, an in-place
     torch change and a new tensor each give a fresh box."""

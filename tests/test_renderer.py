@@ -82,3 +82,46 @@ def test_rounds_render_the_image_of_every_sample(kind):
         for key, tol in (("rgb", 1e-5), ("opacity", 1e-5), ("depth", 1e-3 * float(every["depth"].abs().max()))):
             assert float((other[key] - every[key]).abs().max()) < tol, (kind, key)
     assert not math.isnan(float(rounds["depth"].sum()))
+
+
+def test_skipping_empty_blocks_renders_the_same_image():
+    """With an occupancy grid updated from the field (empty space marked empty), the renderer's
+    march across empty blocks of cells (``OccupancyGrid.occupied_blocks``) gives exactly the
+    image, and in training the colours, of the march that tests every candidate."""
+    r, c2w = renderer_for("euclidean")
+    occ = r.occupancy
+    g = torch.Generator().manual_seed(0)
+    occ.update(step=0, density_fn=lambda x: r.field.geometry(x)[0], generator=g)
+    assert 0.05 < float(occ.occupied_blocks()[1].float().mean()) < 0.95  # some blocks are skipped
+    args = (c2w, 40, 48, 40.0, 24.0, 20.0)
+    o = c2w[:, 3].expand(300, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -1.0]), dim=1)
+    jitter = torch.rand(300, generator=g)
+    skipped, trained = r.render_image(*args), r.render_rays(o, d, jitter=jitter)
+    occ.occupied_blocks = lambda block=8: None  # every candidate tested
+    full, trained_full = r.render_image(*args), r.render_rays(o, d, jitter=jitter)
+    assert skipped["samples"] == full["samples"] and torch.equal(skipped["rgb"], full["rgb"])
+    assert trained.n_samples == trained_full.n_samples > 1000 and torch.equal(trained.rgb, trained_full.rgb)
+
+
+def test_field_without_autograd_evaluates_in_row_blocks_with_the_same_values():
+    """Under no_grad the MLPs run on 4096 rows at a time (cache-sized): values equal the
+    autograd path's to the bit."""
+    from warpnerf.field import GridField, in_row_blocks
+    from warpnerf.ops.hashgrid import HashGridSpec
+    from warpnerf.encoders import HashGridEncoder
+
+    torch.manual_seed(0)
+    spec = HashGridSpec.create(3, 4, 2, 12, 4, 64)
+    field = GridField((-1, -1, -1, 1, 1, 1), HashGridEncoder(spec, init_scale=0.5))
+    x, d = torch.rand(10000, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(10000, 3), dim=1)
+    sigma, geo = field.geometry(x)
+    rgb = field.color(geo, d)
+    with torch.no_grad():
+        sigma_b, geo_b = field.geometry(x)
+        rgb_b = field.color(geo_b, d)
+    assert torch.equal(sigma.detach(), sigma_b) and torch.equal(geo.detach(), geo_b)
+    assert torch.equal(rgb.detach(), rgb_b)
+    rows = []
+    out = in_row_blocks(lambda a, b: rows.append(a.shape[0]) or a + b, x, d, rows=4096)
+    assert rows == [4096, 4096, 1808] and torch.equal(out, x + d)

@@ -80,6 +80,7 @@ class OccupancyGrid:
         self.bitfield = torch.ones(num_cells, dtype=torch.uint8, device=self.device)
         self._updates = 0  # Warp writes the bitfield without bumping torch's version counter
         self._box_key, self._box = None, None
+        self._blocks_key, self._blocks = None, None
 
     @property
     def num_cells(self) -> int:
@@ -140,6 +141,20 @@ class OccupancyGrid:
         if key != self._box_key:
             self._box_key, self._box = key, self._compute_occupied_box()
         return self._box
+
+    def occupied_blocks(self, block: int = 8) -> tuple:
+        """``(block, bits)``: bits (nb^3,) uint8 with nb = ceil(res / block), 1 where some cell of
+        the block of block^3 cells is occupied (flat index (bx * nb + by) * nb + bz). The marcher
+        jumps across empty blocks instead of stepping through them (same samples). Cached per
+        bitfield state, like :meth:`occupied_box`."""
+        key = (self._updates, self.bitfield.data_ptr(), self.bitfield._version, int(block))
+        if key != self._blocks_key:
+            res, nb = self.resolution, -(-self.resolution // int(block))
+            grid = torch.zeros((nb * block,) * 3, dtype=torch.uint8, device=self.bitfield.device)
+            grid[:res, :res, :res] = self.bitfield.view(res, res, res)
+            bits = grid.view(nb, block, nb, block, nb, block).amax(dim=(1, 3, 5)).reshape(-1).contiguous()
+            self._blocks_key, self._blocks = key, (int(block), bits)
+        return self._blocks
 
     def _compute_occupied_box(self) -> Optional[tuple]:
         res = self.resolution

@@ -124,7 +124,8 @@ class Renderer:
                 o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
                 self.occupancy.resolution, self.near, self.far, self.step, self.max_samples_per_ray, jitter,
                 max_total_samples=self.sample_budget, contract=self.ray_space.is_contracted,
-                occupied_box=self.occupancy.occupied_box())  # same samples, fewer empty steps
+                # same samples, fewer empty steps: only near the occupied cells, across empty blocks
+                occupied_box=self.occupancy.occupied_box(), occupied_blocks=self.occupancy.occupied_blocks())
         ray = packed.ray_indices.long()
         t_mid = (packed.t_starts + packed.t_ends) * 0.5
         x = self.ray_space.to_field(gather_rows(o, ray) + t_mid[:, None] * gather_rows(d, ray))
@@ -155,7 +156,8 @@ class Renderer:
         num, dev = o.shape[0], o.device
         occ = self.occupancy
         march = (occ.aabb, occ.bitfield, occ.resolution, self.near, self.far, self.step, self.max_samples_per_ray)
-        occupied_box = occ.occupied_box()  # rays march only near the occupied cells (same samples)
+        # rays march only near the occupied cells, across empty blocks of cells (same samples)
+        skip = dict(occupied_box=occ.occupied_box(), occupied_blocks=occ.occupied_blocks())
         rgb = torch.zeros(num, 3, device=dev)
         opacity = torch.zeros(num, device=dev)
         depth = torch.zeros(num, device=dev)
@@ -167,8 +169,7 @@ class Renderer:
             n_alive = alive.numel()
             window = max(1, min(self.round_samples // n_alive, self.max_window))
             t_starts, t_ends, counts = march_rays_window(o, d, state, window, *march,
-                                                         contract=self.ray_space.is_contracted,
-                                                         occupied_box=occupied_box)
+                                                         contract=self.ray_space.is_contracted, **skip)
             rows, cols = torch.nonzero(torch.arange(window, device=dev) < counts[:, None], as_tuple=True)
             if rows.numel():
                 n_samples += rows.numel()

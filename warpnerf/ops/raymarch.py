@@ -50,6 +50,7 @@ def march_rays(
     jitter: Optional[torch.Tensor] = None,
     contract: bool = False,
     occupied_box: Optional[Sequence[float]] = None,
+    occupied_blocks: Optional[tuple] = None,
 ) -> PackedSamples:
     """March rays through the occupied cells of the scene box with a fixed step.
 
@@ -95,7 +96,8 @@ def march_rays(
         [2.0, 2.5, 3.0, 3.5]
     """
     return march_rays_within_budget(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
-                                    max_samples_per_ray, jitter, contract=contract, occupied_box=occupied_box)[0]
+                                    max_samples_per_ray, jitter, contract=contract, occupied_box=occupied_box,
+                                    occupied_blocks=occupied_blocks)[0]
 
 
 def march_rays_within_budget(
@@ -112,6 +114,7 @@ def march_rays_within_budget(
     max_total_samples: Optional[int] = None,
     contract: bool = False,
     occupied_box: Optional[Sequence[float]] = None,
+    occupied_blocks: Optional[tuple] = None,
 ) -> tuple[PackedSamples, int]:
     """:func:`march_rays` with a cap on the packed samples of the whole batch (a memory bound).
 
@@ -128,7 +131,7 @@ def march_rays_within_budget(
     num_rays = rays_o.shape[0]
     if occ_bitfield is None:
         # a single always-occupied cell: the kernel then only tests "inside the box"
-        res = 1
+        res, occupied_blocks = 1, None
         occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
     counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
     empty_f = torch.zeros(0, dtype=torch.float32, device=device)
@@ -144,7 +147,8 @@ def march_rays_within_budget(
     offsets = torch.zeros(num_rays, dtype=torch.int32, device=device)
     box = [wp.vec3(*lo)] if contract else [wp.vec3(*lo), wp.vec3(*hi)]
     # the uniform march visits only candidates near the occupied cells' box (same samples)
-    tight = [] if contract else [wp.vec3(*v) for v in _padded_box(occupied_box, lo, hi)]
+    tight = [] if contract else [wp.vec3(*v) for v in _padded_box(occupied_box, lo, hi)] + _block_args(
+        occupied_blocks, res, device)
     head = [
         as_warp(rays_o, wp.vec3),
         as_warp(rays_d, wp.vec3),
@@ -186,6 +190,21 @@ def march_rays_within_budget(
         outs = [as_warp(ray_indices), as_warp(t_starts), as_warp(t_ends)]
         launch_over_rays(kernel, num_rays, head + [1, ws_offsets, ws_counts, *outs], device)
     return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts), keep
+
+
+def _block_args(occupied_blocks, res: int, device) -> list:
+    """Kernel arguments (blocks, block) of the empty-block skip: ``occupied_blocks`` (b, blocks)
+    as :meth:`~warpnerf.occupancy.OccupancyGrid.occupied_blocks` returns it, or one occupied
+    block covering the grid (nothing is skipped)."""
+    wp = init_warp()
+    if occupied_blocks is None:
+        return [as_warp(torch.ones(1, dtype=torch.uint8, device=device), wp.uint8), max(int(res), 1)]
+    block, bits = occupied_blocks
+    nb = -(-int(res) // int(block))
+    if not isinstance(bits, torch.Tensor) or bits.dtype != torch.uint8 or tuple(bits.shape) != (nb**3,):
+        raise ValueError(f"march_rays: occupied_blocks must be (block, ({nb}^3,) uint8 tensor) for resolution {res} "
+                         f"and block {block}")
+    return [as_warp(bits.to(device), wp.uint8), int(block)]
 
 
 def _padded_box(occupied_box, lo: list, hi: list) -> tuple[list, list]:
@@ -236,6 +255,7 @@ def march_rays_window(
     max_samples_per_ray: int = 1024,
     contract: bool = False,
     occupied_box: Optional[Sequence[float]] = None,
+    occupied_blocks: Optional[tuple] = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The next at most ``window`` samples of every ray, from where ``state`` says it stopped.
 
@@ -267,7 +287,7 @@ def march_rays_window(
     if num_rays == 0:
         return t_starts, t_ends, counts
     if occ_bitfield is None:
-        res = 1
+        res, occupied_blocks = 1, None
         occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
     wp = init_warp()
     from ..kernels import raymarch as kernels
@@ -275,7 +295,7 @@ def march_rays_window(
     inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract),
               wp.vec3(*lo), wp.vec3(*hi), wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)]),
               as_warp(occ_bitfield, wp.uint8), res, near, far, step_size, int(max_samples_per_ray), window,
-              wp.vec3(*box_lo), wp.vec3(*box_hi),
+              wp.vec3(*box_lo), wp.vec3(*box_hi), *_block_args(None if contract else occupied_blocks, res, device),
               as_warp(state.k), as_warp(state.t), as_warp(state.taken), as_warp(counts),
               as_warp(t_starts.view(-1)), as_warp(t_ends.view(-1))]
     launch_over_rays(kernels.march_rays_window, num_rays, inputs, device)

@@ -31,9 +31,11 @@ def march_rays(
     jitter: Optional[torch.Tensor] = None,
     contract: bool = False,
     occupied_box: Optional[Sequence[float]] = None,
+    occupied_blocks: Optional[tuple] = None,
 ) -> PackedSamples:
-    """See :func:`warpnerf.ops.raymarch.march_rays`; results are identical. ``occupied_box`` only
-    lets the Warp march skip candidates that are never samples: the twin marches them all."""
+    """See :func:`warpnerf.ops.raymarch.march_rays`; results are identical. ``occupied_box`` and
+    ``occupied_blocks`` only let the Warp march skip candidates that are never samples: the twin
+    marches them all."""
     if contract:
         return _march_rays_contracted(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
                                       max_samples_per_ray, jitter)
@@ -83,7 +85,8 @@ def _box_interval(rays_o, rays_d, box_min, box_max, near_t, far_t):
 
 
 def march_rays_window(rays_o, rays_d, state: MarchState, window: int, aabb, occ_bitfield, occ_resolution, near, far,
-                      step_size, max_samples_per_ray: int = 1024, contract: bool = False, occupied_box=None):
+                      step_size, max_samples_per_ray: int = 1024, contract: bool = False, occupied_box=None,
+                      occupied_blocks=None):
     """See :func:`warpnerf.ops.raymarch.march_rays_window`; same results and state updates
     (rows past ``counts[r]`` are zero here). One candidate step of every ray at a time."""
     device = rays_o.device
@@ -184,6 +187,7 @@ def march_rays_within_budget(
     max_total_samples: Optional[int] = None,
     contract: bool = False,
     occupied_box: Optional[Sequence[float]] = None,
+    occupied_blocks: Optional[tuple] = None,
 ) -> tuple[PackedSamples, int]:
     """See :func:`warpnerf.ops.raymarch.march_rays_within_budget`; results are identical."""
     packed = march_rays(rays_o, rays_d, aabb, occ_bitfield, occ_resolution, near, far, step_size,
