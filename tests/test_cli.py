@@ -122,3 +122,33 @@ def test_threads_option_bounds_torch_too():
     finally:
         device.set_num_threads(before[0])
         torch.set_num_threads(before[1])
+
+
+WAIT_POLICY_PROBE = """
+import importlib.abc, os, sys
+seen = []
+class Probe(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" and not seen:
+            seen.append(os.environ.get("OMP_WAIT_POLICY"))
+        return None
+sys.meta_path.insert(0, Probe())
+from warpnerf import cli
+cli.build_parser()
+import torch
+print(seen[0])
+"""
+
+
+@pytest.mark.parametrize("user_value", [None, "ACTIVE"])
+def test_cli_sets_passive_openmp_wait_before_torch_loads(user_value):
+    """libgomp reads OMP_WAIT_POLICY once, when torch loads: the command line must set it before the
+    first torch import (the config registry imports torch while the parser is built), and keep a
+    value the user set."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if user_value:
+        env["OMP_WAIT_POLICY"] = user_value
+    proc = subprocess.run([sys.executable, "-c", WAIT_POLICY_PROBE], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == (user_value or "PASSIVE")
