@@ -35,6 +35,12 @@ def test_clean_cpu_machine_has_no_problem():
     assert doctor.problems(_info()) == []
 
 
+def test_spinning_openmp_workers_are_named():
+    (line,) = doctor.problems(_info(omp_wait_policy="active"))
+    assert line.startswith("OMP_WAIT_POLICY=ACTIVE") and "PASSIVE" in line
+    assert doctor.problems(_info(omp_wait_policy="PASSIVE")) == []
+
+
 def test_cuda_torch_without_a_driver_is_named():
     (line,) = doctor.problems(_info(torch_cuda_build="12.8"))
     assert line.startswith("CUDA torch without a usable driver") and "12.8" in line
