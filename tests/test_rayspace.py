@@ -9,7 +9,7 @@ import torch
 from fake_scenes import write_blender, write_llff
 
 from warpnerf.data import RaySpace, load_blender, load_llff
-from warpnerf.data.rayspace import NDC_AABB
+from warpnerf.data.rayspace import NDC_AABB, ndc_extent, ndc_rays
 
 
 def previous_ndc(rays_o, rays_d, focal, width, height, near=1.0):
@@ -83,7 +83,62 @@ def test_loaders_give_their_scene_its_ray_space(tmp_path):
     # the NDC camera is the one the training views were taken with
     assert (space.kind, space.focal, space.width, space.height, space.ndc_near) == (
         "ndc", llff.train.focal, llff.train.width, llff.train.height, 1.0)
-    assert space.forward_facing and not space.box_is_world and llff.aabb == NDC_AABB
+    assert space.forward_facing and not space.box_is_world
+    # identical cameras at the origin: the box is the average camera's frustum plus the margin
+    assert llff.aabb == (-1.03125, -1.03125, -1.0, 1.03125, 1.03125, 1.0)
+
+
+def small_rotations(n, seed, angle=0.15):
+    """(n, 3, 3) rotations by up to ``angle`` radians about random axes (forward-facing views)."""
+    g = torch.Generator().manual_seed(seed)
+    w = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * angle
+    return torch.linalg.matrix_exp(torch.stack([
+        torch.stack([torch.zeros(n, dtype=w.dtype), -w[:, 2], w[:, 1]], -1),
+        torch.stack([w[:, 2], torch.zeros(n, dtype=w.dtype), -w[:, 0]], -1),
+        torch.stack([-w[:, 1], w[:, 0], torch.zeros(n, dtype=w.dtype)], -1)], -2))
+
+
+def test_ndc_box_holds_every_training_ray_to_infinity(tmp_path):
+    """Forward-facing views that look past the average camera's frustum (as LLFF's do: fern's
+    rays reach |x'| = 1.44): every pixel ray, anywhere from the near plane to z' = 1, lies in the
+    loader's NDC box, and the box is no wider than the outermost ray plus the margin."""
+    n = 6
+    g = torch.Generator().manual_seed(5)
+    centres = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1) * torch.tensor([0.4, 0.3, 0.05],
+                                                                                          dtype=torch.float64)
+    rot = small_rotations(n, seed=6)
+    root = write_llff(tmp_path / "l", rot.numpy(), centres.numpy(), np.tile([[2.0, 20.0]], (n, 1)))
+    scene = load_llff(root, factor=4, holdout=1000)  # every view trains (view 0 is also the test view)
+    space, views = scene.ray_space, scene.train
+    x0, y0, z0, x1, y1, z1 = space.aabb
+    assert (z0, z1) == (-1.0, 1.0) and x0 == -x1 and y0 == -y1
+    assert x1 > 1.1 and y1 > 1.03  # these views see well past the frustum in x and in y
+    h, w = views.height, views.width
+    v, u = torch.meshgrid(torch.arange(h + 1.0), torch.arange(w + 1.0), indexing="ij")  # pixel corners
+    cam = torch.stack([(u - views.cx) / views.focal, -(v - views.cy) / views.focal, -torch.ones_like(u)], -1)
+    reach = torch.zeros(2, dtype=torch.float64)
+    for c2w in views.c2w.double():
+        d = cam.reshape(-1, 3).double() @ c2w[:, :3].T
+        o_ndc, d_ndc = ndc_rays(c2w[:, 3].expand_as(d), d, space.focal, w, h, near=space.ndc_near)
+        for s in torch.linspace(0, 1, 9, dtype=torch.float64):  # z' from -1 (s = 0) to 1 (s = 1)
+            xy = (o_ndc + s * d_ndc)[:, :2].abs().amax(0)
+            reach = torch.maximum(reach, xy)
+    # float32 poses in the views, float64 in the loader: allow for the rounding of the c2w
+    assert reach[0] <= x1 + 1e-5 and reach[1] <= y1 + 1e-5
+    assert x1 <= reach[0] * 1.02 + 1 / 32 + 1e-5 and y1 <= reach[1] * 1.02 + 1 / 32 + 1e-5
+
+
+def test_ndc_extent_is_symmetric_under_mirrored_views_and_rejects_bad_boxes():
+    c2w = torch.cat([torch.eye(3, dtype=torch.float64), torch.tensor([[0.3], [0.0], [0.0]], dtype=torch.float64)], 1)
+    mirrored = c2w.clone()
+    mirrored[0, 3] = -0.3
+    assert ndc_extent(c2w[None], 30.0, 40, 30) == ndc_extent(mirrored[None], 30.0, 40, 30)
+    assert ndc_extent(c2w[None], 30.0, 40, 30) == ndc_extent(torch.stack([c2w, mirrored]), 30.0, 40, 30)
+    # a camera shifted right sees past the frustum's side at the near plane: |x'| = 1 + 0.3 * 2f/W there
+    assert ndc_extent(c2w[None], 30.0, 40, 30, margin=1.0)[0] == math.ceil((1 + 0.3 * 60 / 40) * 32) / 32
+    for bad in ((0.0, 1.0), (1.0, math.inf), (-1.0, 1.0)):
+        with pytest.raises(ValueError, match="half-widths"):
+            RaySpace.ndc(30.0, 40, 30, extent=bad)
 
 
 def test_contracted_space_normalises_contracts_and_inverts():

@@ -15,8 +15,10 @@ the full-resolution image. Processing follows the original NeRF code:
 
 The scene's ray space is LLFF's NDC (:meth:`RaySpace.ndc <warpnerf.data.rayspace.RaySpace.ndc>`,
 formula in :mod:`warpnerf.data.rayspace`, docs/design.md §6): world rays of the recentred scene are
-projected by the views' pinhole camera at the origin, so the box is [-1, 1]^3 and uniform steps
-are uniform in inverse depth, which suits forward-facing scenes with a far background.
+projected by the views' pinhole camera at the origin; the box holds every training ray from the
+near plane to infinity (:func:`~warpnerf.data.rayspace.ndc_extent`: x', y' slightly beyond
+[-1, 1], z' in [-1, 1]), and uniform steps are uniform in inverse depth, which suits
+forward-facing scenes with a far background.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
-from warpnerf.data.rayspace import RaySpace
+from warpnerf.data.rayspace import RaySpace, ndc_extent
 from warpnerf.data.scene import Scene, Views
 
 LLFF_BD_FACTOR = 0.75
@@ -56,7 +58,7 @@ def load_llff(
         name: scene name (default: the folder name).
 
     Returns a scene whose ``train``/``test`` views hold (N, H, W, 3) images, OpenGL c2w, and
-    ``val`` None, and an NDC ray space for the views' intrinsics (box [-1, 1]^3; see module doc).
+    ``val`` None, and an NDC ray space for the views' intrinsics (box around the training rays; module doc).
 
     Raises:
         DatasetError: missing folder/file, wrong array shape, image count or size that does
@@ -142,7 +144,8 @@ def load_llff(
         test=views(test_ids),
         val=None,
         # the NDC near plane at world depth 1: content starts at 1 / bd_factor behind it
-        ray_space=RaySpace.ndc(focal, w, h, ndc_near=1.0),
+        ray_space=RaySpace.ndc(focal, w, h, ndc_near=1.0,
+                               extent=ndc_extent(c2w[train_ids], focal, w, h, near=1.0)),
         # Real photos have no background: whatever transmittance is left at infinity is black,
         # as in the original NeRF LLFF setup.
         background=(0.0, 0.0, 0.0),

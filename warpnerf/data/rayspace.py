@@ -20,10 +20,13 @@ Kinds:
       d' = ( -f/(W/2) * (d_x/d_z - o_x/o_z),  -f/(H/2) * (d_y/d_z - o_y/o_z),  -2 near / o_z )
 
   so o' + s d' with s in [0, 1] runs from the near plane (z' = -1) to infinity (z' = 1), and
-  x', y' in [-1, 1] cover the frustum of the average camera: the box is [-1, 1]^3. ``apply``
-  returns d' normalised (the marcher wants unit directions), so the marching bounds are
-  [0, inf) and the box ends the ray at z' = 1. Uniform steps in NDC are uniform steps in
-  inverse depth, which suits a far background.
+  x', y' in [-1, 1] cover the frustum of the average camera. The other views look past that
+  frustum's sides (fern: 12 % of the training rays leave it before z' = 0.9, and their far
+  background was lost), so the box is [-e_x, e_x] x [-e_y, e_y] x [-1, 1] with the half-widths
+  of :func:`ndc_extent` over the training views (fern: 1.47 x 1.34). ``apply`` returns d'
+  normalised (the marcher wants unit directions), so the marching bounds are [0, inf) and the
+  box ends the ray at z' = 1. Uniform steps in NDC are uniform steps in inverse depth, which
+  suits a far background.
 * ``"contracted"``: unbounded (360°) scenes, MipNeRF-360's scene contraction
   (:mod:`warpnerf.contraction`). ``apply`` only normalises, o' = (o - ``center``) * ``scale``,
   d' = d, so the part of the scene that matters most lies in the unit ball; rays stay straight
@@ -90,9 +93,15 @@ class RaySpace:
         return cls("euclidean", tuple(float(a) for a in aabb), float(near), float(far))
 
     @classmethod
-    def ndc(cls, focal: float, width: int, height: int, ndc_near: float = 1.0) -> "RaySpace":
-        """LLFF's NDC for views with these intrinsics (pixels); box [-1, 1]^3, bounds [0, inf)."""
-        return cls("ndc", NDC_AABB, 0.0, math.inf, float(focal), int(width), int(height), float(ndc_near))
+    def ndc(cls, focal: float, width: int, height: int, ndc_near: float = 1.0,
+            extent: tuple[float, float] = (1.0, 1.0)) -> "RaySpace":
+        """LLFF's NDC for views with these intrinsics (pixels); bounds [0, inf), box
+        [-e_x, e_x] x [-e_y, e_y] x [-1, 1] for ``extent`` (e_x, e_y) (:func:`ndc_extent`)."""
+        ex, ey = (float(e) for e in extent)
+        if not (math.isfinite(ex) and math.isfinite(ey) and ex > 0 and ey > 0):
+            raise ValueError(f"an NDC box needs finite half-widths > 0, got {extent}")
+        aabb = (-ex, -ey, NDC_AABB[2], ex, ey, NDC_AABB[5])
+        return cls("ndc", aabb, 0.0, math.inf, float(focal), int(width), int(height), float(ndc_near))
 
     @classmethod
     def contracted(cls, near: float, far: float = 1000.0, center=(0.0, 0.0, 0.0), scale: float = 1.0) -> "RaySpace":
@@ -178,6 +187,35 @@ def ndc_rays(
     o_ndc = torch.stack([sx * ox / oz, sy * oy / oz, 1.0 + 2.0 * near / oz], -1)
     d_ndc = torch.stack([sx * (dx / dz - ox / oz), sy * (dy / dz - oy / oz), -2.0 * near / oz], -1)
     return o_ndc, d_ndc
+
+
+def ndc_extent(
+    c2w: torch.Tensor, focal: float, width: int, height: int, near: float = 1.0, margin: float = 1.02
+) -> tuple[float, float]:
+    """Half-widths (e_x, e_y) of an NDC box that holds every pixel ray of these views from the
+    near plane (z' = -1) to infinity (z' = 1): at least 1 (the average camera's frustum), times
+    ``margin``, rounded up to 1/32.
+
+    NDC rays are straight and x', y' are projective in the pixel position on any plane z' = c,
+    so the extremes are reached by the four image corners at z' = -1 or z' = 1.
+
+    Args:
+        c2w: (N, 3, 4) camera-to-world of the views (recentred frame, OpenGL axes).
+        focal, width, height: intrinsics in pixels (the NDC projection's too).
+        near: depth of the NDC near plane.
+        margin: relative slack beyond the outermost ray.
+    """
+    c2w = torch.as_tensor(c2w, dtype=torch.float64)
+    u = torch.tensor([0.0, width, 0.0, width], dtype=torch.float64)
+    v = torch.tensor([0.0, 0.0, height, height], dtype=torch.float64)
+    cam = torch.stack([(u - width / 2) / focal, -(v - height / 2) / focal, -torch.ones(4, dtype=torch.float64)], -1)
+    d = torch.einsum("nij,cj->nci", c2w[:, :, :3], cam).reshape(-1, 3)
+    o = c2w[:, None, :, 3].expand(-1, 4, -1).reshape(-1, 3)
+    o_ndc, d_ndc = ndc_rays(o, d, focal, width, height, near=near)
+    ends = torch.cat([o_ndc, o_ndc + d_ndc])  # s = 0: z' = -1; s = 1: z' = 1
+    half = ends[:, :2].abs().amax(0).clamp_min(1.0) * margin
+    ex, ey = (math.ceil(float(h) * 32.0) / 32.0 for h in half)
+    return ex, ey
 
 
 def world_from_ndc(x: torch.Tensor, focal: float, width: int, height: int, near: float = 1.0) -> torch.Tensor:
