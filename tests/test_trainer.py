@@ -400,3 +400,18 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
         task.setup(trainer)
         assert task.optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * scale)
     assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)
+
+
+def test_a_checkpoint_from_another_scene_box_is_refused_in_one_line():
+    """A run trained with another box (another scene, or an LLFF run from before the NDC box held
+    every training ray) would be rendered through the wrong occupancy cells: loading says so."""
+    from warpnerf.checkpoint import CheckpointError
+
+    trainer = make_trainer(iters=1)
+    state = trainer.state_dict()
+    other = make_trainer(iters=1)
+    other.load_state_dict(state)  # same box: loads
+    assert torch.equal(other.field.aabb_min, trainer.field.aabb_min)
+    state["field"]["aabb_size"] = state["field"]["aabb_size"] * 0.5
+    with pytest.raises(CheckpointError, match=r"scene box \(-1, -1, -1, 0, 0, 0\) is not this scene's \(-1, -1, -1, 1, 1, 1\)"):
+        other.load_state_dict(state)

@@ -202,9 +202,21 @@ class Trainer:
                 "history": self.history, "train_seconds": self.train_seconds, "task": self.task.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
-        from .checkpoint import set_rng_state
+        from .checkpoint import CheckpointError, set_rng_state
 
-        self.field.load_state_dict(state["field"])
+        saved = state["field"]
+        if "aabb_min" in saved and not (torch.equal(saved["aabb_min"].cpu(), self.field.aabb_min.cpu())
+                                        and torch.equal(saved["aabb_size"].cpu(), self.field.aabb_size.cpu())):
+            # the occupancy grid and the marcher use the scene's box: a field from another box would
+            # be read through the wrong cells (LLFF's NDC box grew with the loader of 48fe570)
+            def box(lo, size):
+                return "(" + ", ".join(f"{v:.4g}" for v in (*lo.tolist(), *(lo + size).tolist())) + ")"
+
+            raise CheckpointError(
+                f"the checkpoint's scene box {box(saved['aabb_min'].cpu(), saved['aabb_size'].cpu())} is not this "
+                f"scene's {box(self.field.aabb_min.cpu(), self.field.aabb_size.cpu())}: it was trained on another "
+                f"scene or by an older loader (LLFF's NDC box changed); train it again")
+        self.field.load_state_dict(saved)
         self.occupancy.density.copy_(state["occ_density"])
         self.occupancy.bitfield.copy_(state["occ_bitfield"])
         self.optimizer.load_state_dict(state["optimizer"])
