@@ -10,6 +10,7 @@ from fake_scenes import write_blender, write_llff
 
 from warpnerf.data import RaySpace, load_blender, load_llff
 from warpnerf.data.rayspace import NDC_AABB, ndc_extent, ndc_rays
+from warpnerf.renderer import pixel_rays
 
 
 def previous_ndc(rays_o, rays_d, focal, width, height, near=1.0):
@@ -115,11 +116,12 @@ def test_ndc_box_holds_every_training_ray_to_infinity(tmp_path):
     assert x1 > 1.1 and y1 > 1.03  # these views see well past the frustum in x and in y
     h, w = views.height, views.width
     v, u = torch.meshgrid(torch.arange(h + 1.0), torch.arange(w + 1.0), indexing="ij")  # pixel corners
-    cam = torch.stack([(u - views.cx) / views.focal, -(v - views.cy) / views.focal, -torch.ones_like(u)], -1)
+    u, v = u.flatten().double(), v.flatten().double()
     reach = torch.zeros(2, dtype=torch.float64)
     for c2w in views.c2w.double():
-        d = cam.reshape(-1, 3).double() @ c2w[:, :3].T
-        o_ndc, d_ndc = ndc_rays(c2w[:, 3].expand_as(d), d, space.focal, w, h, near=space.ndc_near)
+        # the renderer's own rays through every pixel corner
+        o, d = pixel_rays(c2w[None].expand(len(u), 3, 4), u, v, views.focal, views.cx, views.cy)
+        o_ndc, d_ndc = ndc_rays(o, d, space.focal, w, h, near=space.ndc_near)
         for s in torch.linspace(0, 1, 9, dtype=torch.float64):  # z' from -1 (s = 0) to 1 (s = 1)
             xy = (o_ndc + s * d_ndc)[:, :2].abs().amax(0)
             reach = torch.maximum(reach, xy)
