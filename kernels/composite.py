@@ -128,3 +128,28 @@ def composite_rays_bwd(
         trans *= keep
         grad_sigmas[k] = delta * (v * trans - (total - prefix))
         grad_rgbs[k] = w * g_rgb
+
+
+@wp.kernel
+def composite_active_counts(
+    first_ray: int,
+    sigmas: wp.array(dtype=float),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    ray_offsets: wp.array(dtype=wp.int32),
+    ray_counts: wp.array(dtype=wp.int32),
+    eps: float,
+    out_counts: wp.array(dtype=wp.int32),
+):
+    """Per ray, how many samples ``composite_rays_fwd`` visits: the ones before the transmittance
+    fell below ``eps`` (the same float32 products in the same order, so the same count)."""
+    r = first_ray + wp.tid()
+    start = ray_offsets[r]
+    trans = float(1.0)
+    n = int(0)
+    for i in range(start, start + ray_counts[r]):
+        if trans < eps:
+            break
+        trans *= wp.exp(-sigmas[i] * (t_ends[i] - t_starts[i]))
+        n += 1
+    out_counts[r] = n

@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from warpnerf.ops.composite import composite_rays
+from warpnerf.ops.composite import active_sample_counts, composite_rays
+from warpnerf.ops.reference.composite import active_sample_counts as active_sample_counts_ref
 from warpnerf.ops.reference.composite import composite_rays as composite_rays_ref
 
 
@@ -155,3 +156,53 @@ def test_bad_inputs_raise():
         composite_rays(**ok, background=(1.0, 1.0))
     with pytest.raises(ValueError, match="transmittance_eps"):
         composite_rays(**ok, transmittance_eps=-1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_active_counts_match_twin_and_the_composite_weights(seed):
+    sigmas, rgbs, t0, t1, offsets, counts, bg = packed_samples(seed, num_rays=300)
+    active = active_sample_counts(sigmas, t0, t1, offsets, counts)
+    assert active.dtype == torch.int32 and active.shape == counts.shape
+    assert torch.equal(active, active_sample_counts_ref(sigmas, t0, t1, offsets, counts))
+    # the case the count is about occurs: many rays stop before their last sample
+    assert int((active < counts).sum()) > 50 and bool((active <= counts).all())
+    # the composite gives no weight past the count, and (nearly always) some at the last counted sample
+    weights = composite_rays(sigmas, rgbs, t0, t1, offsets, counts, bg, return_weights=True)[3]
+    for r in range(counts.shape[0]):
+        lo, n, a = int(offsets[r]), int(counts[r]), int(active[r])
+        assert not weights[lo + a:lo + n].any()
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_compositing_the_active_prefixes_gives_the_same_pixels_and_gradients(seed):
+    """What the renderer's training compaction relies on: dropping every ray's samples past its
+    active count changes neither the composite nor its gradient (bit for bit: the same float32
+    operations on the same samples)."""
+    sigmas, rgbs, t0, t1, offsets, counts, bg = packed_samples(seed, num_rays=200)
+    sigmas.requires_grad_(True)
+    rgbs.requires_grad_(True)
+    active = active_sample_counts(sigmas, t0, t1, offsets, counts)
+    ray = torch.repeat_interleave(torch.arange(counts.shape[0]), active.long())
+    new_offsets = (torch.cumsum(active, 0) - active).int()
+    kept = torch.arange(ray.shape[0]) - new_offsets.long()[ray] + offsets.long()[ray]
+    assert kept.shape[0] < 0.7 * sigmas.shape[0]
+    full = composite_rays(sigmas, rgbs, t0, t1, offsets, counts, bg)
+    cut = composite_rays(sigmas[kept], rgbs[kept], t0[kept], t1[kept], new_offsets, active, bg)
+    for a, b in zip(full, cut):
+        assert torch.equal(a, b)
+    g = torch.Generator().manual_seed(seed)
+    cot = [torch.randn(x.shape, generator=g) for x in full]
+    grads_full = torch.autograd.grad(full, (sigmas, rgbs), cot)
+    grads_cut = torch.autograd.grad(cut, (sigmas, rgbs), cot)
+    for a, b in zip(grads_full, grads_cut):
+        assert torch.equal(a, b)  # the gradient of every dropped sample is exactly 0 in both
+
+
+def test_active_counts_bad_inputs_raise_in_one_line():
+    sigmas, _, t0, t1, offsets, counts, _ = packed_samples(5, num_rays=8)
+    with pytest.raises(TypeError, match="active_sample_counts: sigmas must be torch.float32"):
+        active_sample_counts(sigmas.double(), t0, t1, offsets, counts)
+    with pytest.raises(ValueError, match="active_sample_counts: every"):
+        active_sample_counts(sigmas, t0, t1, offsets + 1, counts)
+    with pytest.raises(ValueError, match="transmittance_eps"):
+        active_sample_counts(sigmas, t0, t1, offsets, counts, transmittance_eps=-1.0)

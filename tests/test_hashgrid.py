@@ -238,3 +238,37 @@ def test_weights_vector_and_schedule():
         G2fRSchedule(4, 100, beta=0.0)
     with pytest.raises(ValueError, match="mask mode"):
         G2fRSchedule(4, 100, mode="smooth")
+
+
+@pytest.mark.parametrize("op", ["hashgrid", "cpgrid"])
+def test_known_output_skips_the_forward_and_keeps_the_backward(op):
+    """``known_output`` (the renderer's compaction reuses an encoding computed without autograd):
+    the call returns that tensor's values and its backward equals a fresh call's, to the bit."""
+    from warpnerf.ops.cpgrid import CPGridSpec, cpgrid_encode, init_cp_lines
+
+    if op == "hashgrid":
+        spec = small_spec(3)
+        x, params = random_inputs(spec, n=500, seed=3)
+        encode = hashgrid_encode
+    else:
+        spec = CPGridSpec.create(n_levels=4, rank=4, base_resolution=4, max_resolution=32)
+        x, params = torch.rand(500, 3, generator=torch.Generator().manual_seed(3)), init_cp_lines(spec)
+        encode = cpgrid_encode
+    weights = [1.0] * (spec.n_levels - 2) + [0.5, 0.0]
+    x.requires_grad_(True)
+    params.requires_grad_(True)
+    with torch.no_grad():
+        known = encode(x, params, spec, weights)
+    fresh = encode(x, params, spec, weights)
+    reused = encode(x, params, spec, weights, known_output=known)
+    assert torch.equal(fresh.detach(), reused.detach())
+    cot = torch.randn(fresh.shape, generator=torch.Generator().manual_seed(4))
+    grads_fresh = torch.autograd.grad(fresh, (x, params), cot)
+    grads_reused = torch.autograd.grad(reused, (x, params), cot)
+    for a, b in zip(grads_fresh, grads_reused):
+        assert torch.equal(a, b) and bool(a.abs().sum() > 0)
+    # proof that the forward really is skipped: the known values come back even when they are not the encoding
+    assert torch.equal(encode(x, params, spec, weights, known_output=known + 1.0).detach(), known + 1.0)
+    for bad in (known[1:], known.double(), known[:, :-1]):
+        with pytest.raises(ValueError, match=f"{op}_encode: known_output must be"):
+            encode(x, params, spec, weights, known_output=bad)

@@ -125,3 +125,48 @@ def test_field_without_autograd_evaluates_in_row_blocks_with_the_same_values():
     rows = []
     out = in_row_blocks(lambda a, b: rows.append(a.shape[0]) or a + b, x, d, rows=4096)
     assert rows == [4096, 4096, 1808] and torch.equal(out, x + d)
+
+
+@pytest.mark.parametrize("field_kind", ["grid", "blobs"])
+def test_training_compaction_keeps_pixels_and_gradients(field_kind):
+    """Training (``render_rays`` with autograd) evaluates the field on every marched sample without
+    autograd, then differentiates only the samples before each ray turned opaque, reusing their
+    grid encoding (``Renderer.compact_training``): the pixels and every gradient (grid, MLPs,
+    ray origins: the pose task's path) equal those of differentiating every sample, up to the
+    MLPs' float summation order over fewer rows."""
+    from warpnerf.encoders import HashGridEncoder
+    from warpnerf.field import GridField
+    from warpnerf.ops.hashgrid import HashGridSpec
+
+    r, c2w = renderer_for("euclidean")
+    if field_kind == "grid":
+        torch.manual_seed(0)
+        spec = HashGridSpec.create(3, 6, 2, 12, 4, 64)
+        r.field = GridField((-1.5, -1.5, -1.5, 1.5, 1.5, 1.5), HashGridEncoder(spec, init_scale=0.5))
+        with torch.no_grad():
+            r.field.density_net[2].bias[0] = 2.0  # dense enough that rays turn opaque inside the box
+    g = torch.Generator().manual_seed(1)
+    o = (c2w[:, 3] + 0.05 * torch.randn(400, 3, generator=g)).requires_grad_(True)
+    d = torch.nn.functional.normalize(torch.randn(400, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -1.0]), dim=1)
+    jitter = torch.rand(400, generator=g)
+    weights = (1.0, 1.0, 1.0, 1.0, 0.5, 0.0)
+    params = [o] + list(r.field.parameters())
+    results = []
+    for compact in (False, True):
+        r.compact_training = compact
+        out = r.render_rays(o, d, weights if field_kind == "grid" else None, jitter)
+        loss = (out.rgb * torch.linspace(0.5, 1.5, 3)).square().sum() + out.depth.sum() * 1e-2
+        results.append((out, torch.autograd.grad(loss, params, allow_unused=True)))
+    (full, grads_full), (cut, grads_cut) = results
+    assert full.n_samples == cut.n_samples == full.n_active
+    # most samples lie behind an opaque surface: the case compaction is for
+    assert cut.n_active < 0.6 * cut.n_samples, (cut.n_active, cut.n_samples)
+    torch.testing.assert_close(cut.rgb, full.rgb, rtol=0, atol=1e-6)
+    torch.testing.assert_close(cut.opacity, full.opacity, rtol=0, atol=1e-6)
+    for i, (a, b) in enumerate(zip(grads_cut, grads_full)):
+        if b is None:
+            assert a is None
+            continue
+        scale = float(b.abs().max())
+        assert scale > 0, i
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-5 * scale, msg=lambda m: f"parameter {i}: {m}")

@@ -86,7 +86,10 @@ def test_refine_poses_recovers_perturbed_test_poses(trained_full):
         # 2 deg about the world origin: the kind of error the pose noise and the Sim(3) map leave
         R = rotation_about_axis(axis, math.radians(2.0))
         start[k] = torch.cat([R @ gt[k, :, :3], (R @ gt[k, :, 3])[:, None]], -1)
-    trainer.cfg.pose_refine_steps, trainer.cfg.pose_lr, trainer.cfg.pose_lr_final = 100, 3e-3, 1e-4
+    # measured (view 0, view 1 from 2 deg): 100 steps left 0.28 / 0.83 deg, and 0.17 / 1.02 with a field
+    # trained to different float rounding (the training compaction): too close to the bound; 150
+    # steps: 0.25 / 0.49 and 0.20 / 0.61
+    trainer.cfg.pose_refine_steps, trainer.cfg.pose_lr, trainer.cfg.pose_lr_final = 150, 3e-3, 1e-4
     refined = refine_poses(trainer, start, views, rays_per_step=512)
     before, after = rotation_error_deg(start, gt), rotation_error_deg(refined, gt)
     assert (after[:2] < 0.5 * before[:2]).all(), (before, after)
@@ -141,7 +144,7 @@ def test_g2fr_masks_levels_early():
     # moves level 1's table rows and leaves every masked level's rows exactly as initialised
     encoder, seen = t.field.encoder, []
     forward = encoder.forward
-    encoder.forward = lambda x, level_weights=None: seen.append(level_weights) or forward(x, level_weights)
+    encoder.forward = lambda x, level_weights=None, *known: seen.append(level_weights) or forward(x, level_weights, *known)
     table0 = encoder.table.detach().clone()
     t.train_step(0)
     assert seen and all(list(w) == t.schedule(0).tolist() for w in seen)  # host LevelWeights or a tensor

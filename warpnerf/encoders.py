@@ -39,8 +39,8 @@ class HashGridEncoder(nn.Module):
     def grid_parameters(self):
         return [self.table]
 
-    def forward(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
-        return hashgrid_encode(x.contiguous(), self.table, self.spec, level_weights)
+    def forward(self, x: torch.Tensor, level_weights=None, known_output=None) -> torch.Tensor:
+        return hashgrid_encode(x.contiguous(), self.table, self.spec, level_weights, known_output)
 
     def extra_repr(self) -> str:
         s = self.spec
@@ -104,8 +104,8 @@ class CPGridEncoder(nn.Module):
     def grid_parameters(self):
         return [self.lines]
 
-    def forward(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
-        return cpgrid_encode(x.contiguous(), self.lines, self.spec, level_weights)
+    def forward(self, x: torch.Tensor, level_weights=None, known_output=None) -> torch.Tensor:
+        return cpgrid_encode(x.contiguous(), self.lines, self.spec, level_weights, known_output)
 
     def extra_repr(self) -> str:
         s = self.spec

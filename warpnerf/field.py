@@ -80,11 +80,21 @@ class GridField(nn.Module):
     def to_unit(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.aabb_min) / self.aabb_size
 
-    def geometry(self, x: torch.Tensor, level_weights=None):
-        """(N, 3) world points -> density (N,) per unit length, geometry features (N, geo_features)."""
-        enc = self.encoder(self.to_unit(x), level_weights)
+    def encode(self, x: torch.Tensor, level_weights=None, known_output=None) -> torch.Tensor:
+        """(N, 3) world points -> grid encoding (N, encoder.out_dim). ``known_output``: that encoding
+        computed earlier without autograd, to be reused with a backward (the grid's ops)."""
+        if known_output is None:
+            return self.encoder(self.to_unit(x), level_weights)
+        return self.encoder(self.to_unit(x), level_weights, known_output)
+
+    def geometry_of(self, enc: torch.Tensor):
+        """Grid encoding (N, out_dim) -> density (N,) per unit length, geometry features (N, geo_features)."""
         h = self.density_net(enc) if torch.is_grad_enabled() else in_row_blocks(self.density_net, enc)
         return trunc_exp(h[:, 0] + self.density_shift), h[:, 1:]
+
+    def geometry(self, x: torch.Tensor, level_weights=None):
+        """(N, 3) world points -> density (N,) per unit length, geometry features (N, geo_features)."""
+        return self.geometry_of(self.encode(x, level_weights))
 
     def density(self, x: torch.Tensor, level_weights=None) -> torch.Tensor:
         """(N, 3) world points -> (N,) density, per unit length."""

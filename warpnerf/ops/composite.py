@@ -15,7 +15,7 @@ import torch
 from ..device import init_warp
 from .launch import as_warp, launch_over_rays
 
-__all__ = ["composite_rays", "TRANSMITTANCE_EPS"]
+__all__ = ["composite_rays", "active_sample_counts", "TRANSMITTANCE_EPS"]
 
 # default early-termination threshold on a ray's transmittance (the renderer's rounds use it too)
 TRANSMITTANCE_EPS = 1e-4
@@ -74,48 +74,87 @@ def composite_rays(
     return out if return_weights else out[:3]
 
 
-def _check_inputs(sigmas, rgbs, t_starts, t_ends, ray_offsets, ray_counts, background):
+def active_sample_counts(
+    sigmas: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    ray_offsets: torch.Tensor,
+    ray_counts: torch.Tensor,
+    transmittance_eps: float = TRANSMITTANCE_EPS,
+) -> torch.Tensor:
+    """(R,) int32: per ray, the samples :func:`composite_rays` gives a weight (or a gradient), i.e.
+    those before the ray's transmittance fell below ``transmittance_eps``; the rest of the ray
+    weighs exactly 0. Compositing only the first ``count`` samples of each ray gives the same
+    outputs as compositing all of them. Not differentiable (a count); arguments as in
+    :func:`composite_rays`.
+
+    Example:
+        >>> sig = torch.tensor([0.0, 1e9, 5.0]); t0 = torch.tensor([0.0, 1.0, 2.0]); t1 = t0 + 1.0
+        >>> active_sample_counts(sig, t0, t1, torch.tensor([0], dtype=torch.int32),
+        ...                      torch.tensor([3], dtype=torch.int32)).tolist()
+        [2]
+    """
+    # the checks of composite_rays (an expanded zero view stands in for the colours)
+    _check_inputs(sigmas, sigmas.new_zeros(1, 3).expand(sigmas.shape[0], 3), t_starts, t_ends, ray_offsets,
+                  ray_counts, (0.0, 0.0, 0.0), op="active_sample_counts")
+    eps = float(transmittance_eps)
+    if not eps >= 0.0:
+        raise ValueError(f"active_sample_counts: transmittance_eps must be >= 0, got {transmittance_eps}")
+    num_rays = ray_offsets.shape[0]
+    counts = torch.zeros(num_rays, dtype=torch.int32, device=sigmas.device)
+    if num_rays:
+        wp = init_warp()
+        from ..kernels.composite import composite_active_counts
+
+        sigmas, t_starts, t_ends = (t.detach().contiguous() for t in (sigmas, t_starts, t_ends))
+        inputs = [as_warp(sigmas), as_warp(t_starts), as_warp(t_ends), as_warp(ray_offsets.contiguous()),
+                  as_warp(ray_counts.contiguous()), eps, as_warp(counts)]
+        launch_over_rays(composite_active_counts, num_rays, inputs, sigmas.device)
+    return counts
+
+
+def _check_inputs(sigmas, rgbs, t_starts, t_ends, ray_offsets, ray_counts, background, op="composite_rays"):
     named = dict(
         sigmas=sigmas, rgbs=rgbs, t_starts=t_starts, t_ends=t_ends, ray_offsets=ray_offsets, ray_counts=ray_counts
     )
     for name, t in named.items():
         if not isinstance(t, torch.Tensor):
-            raise TypeError(f"composite_rays: {name} must be a torch tensor, got {type(t).__name__}")
+            raise TypeError(f"{op}: {name} must be a torch tensor, got {type(t).__name__}")
         want = torch.int32 if name.startswith("ray_") else torch.float32
         if t.dtype != want:
-            raise TypeError(f"composite_rays: {name} must be {want}, got {t.dtype}")
+            raise TypeError(f"{op}: {name} must be {want}, got {t.dtype}")
         if t.device != sigmas.device:
-            raise ValueError(f"composite_rays: {name} is on {t.device} but sigmas is on {sigmas.device}")
+            raise ValueError(f"{op}: {name} is on {t.device} but sigmas is on {sigmas.device}")
     if sigmas.dim() != 1 or ray_offsets.dim() != 1:
         raise ValueError(
-            f"composite_rays: sigmas must be (S,) and ray_offsets (R,), "
+            f"{op}: sigmas must be (S,) and ray_offsets (R,), "
             f"got {tuple(sigmas.shape)} and {tuple(ray_offsets.shape)}"
         )
     num_samples, num_rays = sigmas.shape[0], ray_offsets.shape[0]
     shapes = dict(rgbs=(num_samples, 3), t_starts=(num_samples,), t_ends=(num_samples,), ray_counts=(num_rays,))
     for name, shape in shapes.items():
         if tuple(named[name].shape) != shape:
-            raise ValueError(f"composite_rays: {name} must have shape {shape}, got {tuple(named[name].shape)}")
+            raise ValueError(f"{op}: {name} must have shape {shape}, got {tuple(named[name].shape)}")
     # out-of-range segments would make the kernels read and write outside the sample arrays
     ends = ray_offsets.long() + ray_counts.long()
     if num_rays and not bool(((ray_offsets >= 0) & (ray_counts >= 0) & (ends <= num_samples)).all()):
         raise ValueError(
-            f"composite_rays: every [ray_offset, ray_offset + ray_count) must lie inside [0, {num_samples}]"
+            f"{op}: every [ray_offset, ray_offset + ray_count) must lie inside [0, {num_samples}]"
         )
 
     if isinstance(background, torch.Tensor) and background.dim() == 2:
         if background.dtype != torch.float32:
-            raise TypeError(f"composite_rays: background must be float32, got {background.dtype}")
+            raise TypeError(f"{op}: background must be float32, got {background.dtype}")
         if tuple(background.shape) != (num_rays, 3):
             raise ValueError(
-                f"composite_rays: a background tensor must have shape ({num_rays}, 3), got {tuple(background.shape)}"
+                f"{op}: a background tensor must have shape ({num_rays}, 3), got {tuple(background.shape)}"
             )
         if background.device != sigmas.device:
-            raise ValueError(f"composite_rays: background is on {background.device} but sigmas is on {sigmas.device}")
+            raise ValueError(f"{op}: background is on {background.device} but sigmas is on {sigmas.device}")
         return background.detach(), None
     bg = background.detach().cpu().tolist() if isinstance(background, torch.Tensor) else list(background)
     if len(bg) != 3:
-        raise ValueError(f"composite_rays: background must be 3 floats or an (R, 3) tensor, got {background!r}")
+        raise ValueError(f"{op}: background must be 3 floats or an (R, 3) tensor, got {background!r}")
     return None, tuple(float(c) for c in bg)
 
 

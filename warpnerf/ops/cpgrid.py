@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, level_weight_values
+from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -129,7 +129,8 @@ def init_cp_lines(
 
 
 def cpgrid_encode(
-    x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights=None
+    x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights=None,
+    known_output: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Encode points with a multi-resolution CP grid.
 
@@ -142,6 +143,9 @@ def cpgrid_encode(
         level_weights: L G²fR weights w_l in [0, 1] (host :class:`~warpnerf.freq_mask.LevelWeights`,
             floats, an (L,) tensor, or ``None`` for all ones; see :func:`hashgrid_encode`).
             Not differentiable. Levels with w_l = 0 are skipped (output 0, no gradient).
+        known_output: optional, this call's output already computed without autograd (the
+            renderer's first pass): returned as the output, with the usual backward, instead of
+            encoding again. Checked for shape, dtype and device only.
 
     Returns:
         (N, L*R) features; columns [l*R, (l+1)*R) belong to level l and are scaled by w_l.
@@ -152,7 +156,8 @@ def cpgrid_encode(
         torch.Size([5, 16])
     """
     values = _check_inputs(x, lines, spec, level_weights)
-    return GridEncodeFunction.apply(x, lines, values, _Launcher.get(spec, x.device, x.dtype))
+    check_known_output("cpgrid_encode", known_output, x, spec.out_dim)
+    return GridEncodeFunction.apply(x, lines, values, _Launcher.get(spec, x.device, x.dtype), known_output)
 
 
 def _check_inputs(x, lines, spec, level_weights) -> tuple[float, ...]:

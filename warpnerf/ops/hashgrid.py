@@ -20,13 +20,14 @@ import torch
 
 from ..device import init_warp
 from .hashgrid_spec import HashGridSpec
-from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, level_weight_values
+from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
 
 def hashgrid_encode(
-    x: torch.Tensor, table: torch.Tensor, spec: HashGridSpec, level_weights=None
+    x: torch.Tensor, table: torch.Tensor, spec: HashGridSpec, level_weights=None,
+    known_output: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Encode points with a multi-resolution hash grid.
 
@@ -38,6 +39,9 @@ def hashgrid_encode(
         level_weights: L G²fR weights w_m in [0, 1]: a host :class:`~warpnerf.freq_mask.LevelWeights`
             or floats (read without touching the device), an (L,) tensor (read once: a sync on
             CUDA), or ``None`` for all ones. Not differentiable.
+        known_output: optional, this call's output already computed without autograd (the
+            renderer's first pass): returned as the output, with the usual backward, instead of
+            encoding again. Checked for shape, dtype and device only.
 
     Returns:
         (N, L*F) features; columns [m*F, (m+1)*F) belong to level m and are scaled by w_m.
@@ -49,7 +53,8 @@ def hashgrid_encode(
         torch.Size([5, 8])
     """
     values = _check_inputs(x, table, spec, level_weights)
-    return GridEncodeFunction.apply(x, table, values, _Launcher.get(spec, x.device, x.dtype))
+    check_known_output("hashgrid_encode", known_output, x, spec.out_dim)
+    return GridEncodeFunction.apply(x, table, values, _Launcher.get(spec, x.device, x.dtype), known_output)
 
 
 def _check_inputs(x, table, spec, level_weights) -> tuple[float, ...]:

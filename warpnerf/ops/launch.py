@@ -16,7 +16,7 @@ results are bit-identical whether the chunks run on one thread or several.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 
@@ -267,12 +267,14 @@ class GridLauncher:
 
 
 class GridEncodeFunction(torch.autograd.Function):
-    """Autograd glue of the grid encodings: ``apply(x, params, values, launcher)`` with host
-    level weights ``values`` (a tuple of floats, not differentiated)."""
+    """Autograd glue of the grid encodings: ``apply(x, params, values, launcher, known)`` with host
+    level weights ``values`` (a tuple of floats, not differentiated). ``known``: ``None``, or this
+    forward's output already computed (without autograd) for the same inputs, returned instead of
+    launching the forward again; the backward is the same either way."""
 
     @staticmethod
-    def forward(ctx, x, params, values, launcher):
-        out = launcher.forward(x, params.detach(), values)
+    def forward(ctx, x, params, values, launcher, known=None):
+        out = launcher.forward(x, params.detach(), values) if known is None else known.detach()
         ctx.launcher, ctx.values = launcher, values
         ctx.save_for_backward(x, params)
         return out
@@ -282,10 +284,23 @@ class GridEncodeFunction(torch.autograd.Function):
         x, params = ctx.saved_tensors
         want_x, want_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (want_x or want_params):
-            return None, None, None, None
+            return None, None, None, None, None
         grad_x, grad_params = ctx.launcher.backward(x.detach(), params.detach(), ctx.values, grad_out, want_x,
                                                     want_params)
-        return grad_x, grad_params, None, None
+        return grad_x, grad_params, None, None, None
+
+
+def check_known_output(op: str, known: Optional[torch.Tensor], x: torch.Tensor, out_dim: int) -> None:
+    """A grid op's ``known_output`` must be (N, out_dim) of ``x``'s dtype and device."""
+    if known is None:
+        return
+    if not isinstance(known, torch.Tensor):
+        raise TypeError(f"{op}: known_output must be a torch tensor or None, got {type(known).__name__}")
+    if tuple(known.shape) != (x.shape[0], out_dim) or known.dtype != x.dtype or known.device != x.device:
+        raise ValueError(
+            f"{op}: known_output must be ({x.shape[0]}, {out_dim}) {x.dtype} on {x.device}, got "
+            f"{tuple(known.shape)} {known.dtype} on {known.device}"
+        )
 
 
 def as_warp(t: torch.Tensor, dtype=None):

@@ -12,7 +12,7 @@ import torch
 
 from ..composite import TRANSMITTANCE_EPS
 
-__all__ = ["composite_rays"]
+__all__ = ["composite_rays", "active_sample_counts"]
 
 
 def composite_rays(
@@ -52,3 +52,26 @@ def composite_rays(
     if not return_weights:
         return rgb, opacity, depth
     return rgb, opacity, depth, s.new_zeros(num_samples).index_put((idx,), w)
+
+
+def active_sample_counts(
+    sigmas: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    ray_offsets: torch.Tensor,
+    ray_counts: torch.Tensor,
+    transmittance_eps: float = TRANSMITTANCE_EPS,
+) -> torch.Tensor:
+    """See :func:`warpnerf.ops.composite.active_sample_counts`; the transmittance from a per-ray
+    cumulative sum (equal to the kernel's running product up to rounding)."""
+    num_rays = ray_offsets.shape[0]
+    counts = ray_counts.long()
+    ray = torch.repeat_interleave(torch.arange(num_rays, device=sigmas.device), counts)
+    local = torch.arange(ray.shape[0], device=sigmas.device) - (torch.cumsum(counts, 0) - counts)[ray]
+    idx = ray_offsets.long()[ray] + local
+    s = (sigmas[idx] * (t_ends[idx] - t_starts[idx])).detach()
+    longest = int(counts.max()) if num_rays else 0
+    dense = s.new_zeros(num_rays, longest + 1).index_put((ray, local + 1), s)
+    tau = torch.cumsum(dense, 1)[:, :-1][ray, local]  # exclusive per-ray sum of s
+    active = (torch.exp(-tau) >= transmittance_eps).long()  # a prefix of each ray: tau only grows
+    return torch.zeros(num_rays, dtype=torch.long, device=sigmas.device).index_add(0, ray, active).int()

@@ -22,11 +22,14 @@ def _interpolate_lines(lines: torch.Tensor, xc: torch.Tensor, spec: CPGridSpec, 
     return (1.0 - frac) * lines[rows, axis] + frac * lines[rows + 1, axis]
 
 
-def cpgrid_encode(x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+def cpgrid_encode(x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights: torch.Tensor | None = None,
+                  known_output: torch.Tensor | None = None) -> torch.Tensor:
     """Encode points x (N, 3) in [0, 1] (clamped) with lines (n_rows, 3, R) -> (N, L*R).
 
     Feature (l, r) is ``w_l * v^{l,x}_r(x) * v^{l,y}_r(y) * v^{l,z}_r(z)``, with
     ``w_l = level_weights[l]`` (G²fR mask); a level with weight 0 is skipped and gives zeros.
+    ``known_output`` (the Warp op's shortcut for an output computed earlier) is accepted and
+    ignored: the twin always computes.
     """
     n = x.shape[0]
     xc = x.clamp(0.0, 1.0)

@@ -30,10 +30,13 @@ def _level_rows(corner: torch.Tensor, spec: HashGridSpec, m: int) -> torch.Tenso
     return local + spec.offsets[m]
 
 
-def hashgrid_encode(x: torch.Tensor, table: torch.Tensor, spec: HashGridSpec, level_weights: torch.Tensor | None = None) -> torch.Tensor:
+def hashgrid_encode(x: torch.Tensor, table: torch.Tensor, spec: HashGridSpec, level_weights: torch.Tensor | None = None,
+                    known_output: torch.Tensor | None = None) -> torch.Tensor:
     """Encode points x (N, D) in [0, 1] (clamped) with table (rows, F) -> (N, L*F).
 
     Level m's features are multiplied by ``level_weights[m]`` (G²fR mask, eq. 15).
+    ``known_output`` (the Warp op's shortcut for an output computed earlier) is accepted and
+    ignored: the twin always computes.
     """
     n = x.shape[0]
     feats = []
