@@ -418,3 +418,39 @@ def test_a_checkpoint_from_another_scene_box_is_refused_in_one_line():
     state["field"]["aabb_size"] = state["field"]["aabb_size"] * 0.5
     with pytest.raises(CheckpointError, match=r"scene box \(-1, -1, -1, 0, 0, 0\) is not this scene's \(-1, -1, -1, 1, 1, 1\)"):
         other.load_state_dict(state)
+
+
+def test_training_compaction_follows_the_kept_fraction_and_resumes():
+    """The trainer compacts (Renderer._active_prefixes) while the last compacted step kept less than
+    COMPACT_BELOW of its samples, probes every COMPACT_PROBE_EVERY steps, and checkpoints the fraction
+    (a resumed run makes the same choices)."""
+    from warpnerf.trainer import COMPACT_BELOW, COMPACT_PROBE_EVERY
+
+    t = make_trainer(iters=80)
+    calls = []
+    render = t.renderer.render_rays
+
+    def spy(*args, compact=None, **kw):
+        before = t.kept_fraction
+        out = render(*args, compact=compact, **kw)
+        calls.append((compact, before, out.n_active, out.n_samples))
+        return out
+
+    t.renderer.render_rays = spy
+    for step in range(20):  # untrained: nearly transparent, nothing to drop
+        t.train_step(step)
+    with torch.no_grad():  # an opaque field: most samples lie behind its first surfaces
+        t.field.density_net[2].bias[0] += 4.0
+    for step in range(20, 50):
+        t.train_step(step)
+    for step, (compact, before, n_active, n_samples) in enumerate(calls):
+        assert compact == (step % COMPACT_PROBE_EVERY == 0 or before < COMPACT_BELOW), step
+        assert n_active <= n_samples and (compact or n_active == n_samples)
+    assert {c for c, *_ in calls} == {True, False}  # both choices occur
+    assert not any(c for c, *_ in calls[1:16]) and all(c for c, *_ in calls[33:])
+    assert min(a / s for c, _, a, s in calls if c) < COMPACT_BELOW
+    state = t.state_dict()
+    assert state["kept_fraction"] == t.kept_fraction
+    other = make_trainer(iters=80)
+    other.load_state_dict(state)
+    assert other.kept_fraction == t.kept_fraction

@@ -116,13 +116,16 @@ class Renderer:
         self.compact_training = True
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
-                    jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None) -> RenderOutput:
+                    jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None,
+                    compact: Optional[bool] = None) -> RenderOutput:
         """Render (R, 3) rays (unit directions). Differentiable w.r.t. the field and the rays.
 
         At most ``sample_budget`` samples are taken: if the rays would need more, only the first
         ``out.n_rays`` rays are rendered (the others come back as background with no samples), so
         memory stays bounded however empty or full the occupancy grid is. ``background``: optional
-        (R, 3) per-ray colours replacing the renderer's constant one (random backgrounds)."""
+        (R, 3) per-ray colours replacing the renderer's constant one (random backgrounds). ``compact``:
+        with autograd, differentiate only the samples before each ray turned opaque
+        (:meth:`_active_prefixes`; same pixels and gradients); ``None``: ``compact_training``."""
         view_dirs = rays_d
         o, d = self.ray_space.apply(rays_o, rays_d)
         with torch.no_grad():
@@ -134,7 +137,7 @@ class Renderer:
                 occupied_box=self.occupancy.occupied_box(), occupied_blocks=self.occupancy.occupied_blocks())
         n_samples = int(packed.ray_indices.shape[0])
         known = None
-        if self.compact_training and torch.is_grad_enabled() and n_samples:
+        if (self.compact_training if compact is None else compact) and torch.is_grad_enabled() and n_samples:
             packed, known = self._active_prefixes(o, d, packed, level_weights)
         ray, x = self._points(o, d, packed)
         if known is None:
