@@ -111,8 +111,9 @@ class Renderer:
         # reused heap memory: 2^17 rendered lego 0.87 s/view where 2^18 took 1.3) and per ray per round
         self.round_samples = 1 << 17
         self.max_window = 16
-        # render_rays with autograd (training) evaluates the field twice: all samples without
-        # autograd, then only those before each ray turned opaque with it (_active_prefixes)
+        # render_rays with autograd (training) encodes every sample and evaluates its density without
+        # autograd, then differentiates only those before each ray turned opaque (_active_prefixes);
+        # the trainer passes ``compact`` per step (on only while it pays)
         self.compact_training = True
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
