@@ -26,7 +26,7 @@ import torch
 from .data.rayspace import RaySpace
 from .occupancy import OccupancyGrid
 from .ops.composite import TRANSMITTANCE_EPS, active_sample_counts, composite_rays
-from .ops.raymarch import MarchState, PackedSamples, march_rays_window, march_rays_within_budget
+from .ops.raymarch import MarchState, PackedSamples, march_rays_window, march_rays_within_budget, prefix_rows
 
 
 def gather_rows(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -181,10 +181,8 @@ class Renderer:
             counts = torch.minimum(active + 1, packed.ray_counts)
             if bool((counts == packed.ray_counts).all()):
                 return packed, enc
+            ray, kept = prefix_rows(packed.ray_offsets, counts)
             offsets = torch.cumsum(counts, 0, dtype=torch.int32) - counts
-            ray = torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts.long())
-            kept = torch.arange(ray.shape[0], device=counts.device) - offsets.long()[ray] \
-                + packed.ray_offsets.long()[ray]
             cut = PackedSamples(ray.int(), packed.t_starts[kept], packed.t_ends[kept], offsets, counts)
             return cut, None if enc is None else gather_rows(enc, kept)
 

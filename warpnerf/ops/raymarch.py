@@ -16,7 +16,7 @@ from ..device import init_warp
 from .launch import aabb_floats, as_warp, launch_over_rays
 
 __all__ = ["march_rays", "march_rays_within_budget", "march_rays_window", "MarchState", "PackedSamples",
-           "rays_within_budget"]
+           "prefix_rows", "rays_within_budget"]
 
 
 # candidate steps one ray may take at most (= kernels/raymarch.py MAX_STEPS_PER_RAY, kept here so the
@@ -35,6 +35,15 @@ class PackedSamples(NamedTuple):
     t_ends: torch.Tensor  # (S,) float32, interval end
     ray_offsets: torch.Tensor  # (R,) int32, index of the ray's first sample
     ray_counts: torch.Tensor  # (R,) int32, number of samples of the ray
+
+
+def prefix_rows(ray_offsets: torch.Tensor, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``counts[r]`` samples of every ray r of a packed array, in packed order: (ray, row),
+    both (sum(counts),) int64, ``row`` indexing the packed array (``counts`` <= the rays' counts)."""
+    counts = counts.long()
+    ray = torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts)
+    local = torch.arange(ray.shape[0], device=counts.device) - (torch.cumsum(counts, 0) - counts)[ray]
+    return ray, ray_offsets.long()[ray] + local
 
 
 def march_rays(

@@ -11,6 +11,7 @@ from typing import Sequence, Union
 import torch
 
 from ..composite import TRANSMITTANCE_EPS
+from ..raymarch import prefix_rows
 
 __all__ = ["composite_rays", "active_sample_counts"]
 
@@ -28,16 +29,7 @@ def composite_rays(
 ):
     """See :func:`warpnerf.ops.composite.composite_rays`; same outputs, autograd gradients."""
     num_rays, num_samples = ray_offsets.shape[0], sigmas.shape[0]
-    counts = ray_counts.long()
-    ray = torch.repeat_interleave(torch.arange(num_rays, device=sigmas.device), counts)
-    local = torch.arange(ray.shape[0], device=sigmas.device) - (torch.cumsum(counts, 0) - counts)[ray]
-    idx = ray_offsets.long()[ray] + local
-
-    delta = t_ends[idx] - t_starts[idx]
-    s = sigmas[idx] * delta
-    longest = int(counts.max()) if num_rays else 0
-    dense = s.new_zeros(num_rays, longest + 1).index_put((ray, local + 1), s)
-    tau = torch.cumsum(dense, 1)[:, :-1][ray, local]  # exclusive per-ray sum of s
+    ray, idx, s, tau = _optical_depths(sigmas, t_starts, t_ends, ray_offsets, ray_counts)
     trans = torch.exp(-tau)
     w = torch.where(trans >= transmittance_eps, trans * (1.0 - torch.exp(-s)), torch.zeros_like(s))
 
@@ -65,13 +57,18 @@ def active_sample_counts(
     """See :func:`warpnerf.ops.composite.active_sample_counts`; the transmittance from a per-ray
     cumulative sum (equal to the kernel's running product up to rounding)."""
     num_rays = ray_offsets.shape[0]
-    counts = ray_counts.long()
-    ray = torch.repeat_interleave(torch.arange(num_rays, device=sigmas.device), counts)
-    local = torch.arange(ray.shape[0], device=sigmas.device) - (torch.cumsum(counts, 0) - counts)[ray]
-    idx = ray_offsets.long()[ray] + local
-    s = (sigmas[idx] * (t_ends[idx] - t_starts[idx])).detach()
-    longest = int(counts.max()) if num_rays else 0
-    dense = s.new_zeros(num_rays, longest + 1).index_put((ray, local + 1), s)
-    tau = torch.cumsum(dense, 1)[:, :-1][ray, local]  # exclusive per-ray sum of s
+    ray, _, _, tau = _optical_depths(sigmas.detach(), t_starts, t_ends, ray_offsets, ray_counts)
     active = (torch.exp(-tau) >= transmittance_eps).long()  # a prefix of each ray: tau only grows
     return torch.zeros(num_rays, dtype=torch.long, device=sigmas.device).index_add(0, ray, active).int()
+
+
+def _optical_depths(sigmas, t_starts, t_ends, ray_offsets, ray_counts):
+    """Per packed sample in ray order: its ray, its row, s = sigma * delta, and the exclusive per-ray
+    sum of s before it (from a dense rays x longest-ray table)."""
+    num_rays = ray_offsets.shape[0]
+    ray, idx = prefix_rows(ray_offsets, ray_counts)
+    local = idx - ray_offsets.long()[ray]
+    s = sigmas[idx] * (t_ends[idx] - t_starts[idx])
+    longest = int(ray_counts.max()) if num_rays else 0
+    dense = s.new_zeros(num_rays, longest + 1).index_put((ray, local + 1), s)
+    return ray, idx, s, torch.cumsum(dense, 1)[:, :-1][ray, local]
