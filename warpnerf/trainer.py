@@ -121,7 +121,7 @@ class Trainer:
             target = target + (1.0 - self.alpha[pix])[:, None] * (background - self.background)
         # compaction pays when many samples lie behind opaque surfaces (lego late in training: 0.91x
         # the step time) and costs when few do (fern, 1 % behind: 1.15x): compact while the last
-        # compacted step dropped at least COMPACT_BELOW of the samples, and probe every 16 steps
+        # compacted step kept less than COMPACT_BELOW of its samples, and probe every 16 steps
         compact = step % COMPACT_PROBE_EVERY == 0 or self.kept_fraction < COMPACT_BELOW
         out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights, jitter, background, compact=compact)
         if compact:
@@ -213,7 +213,8 @@ class Trainer:
         return {"step": self.step, "field": self.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
                 "rng": rng_state(self.gen), "n_rays": self.n_rays, "loss_ratio": self.loss_ratio,
-                "kept_fraction": self.kept_fraction, "history": self.history, "train_seconds": self.train_seconds, "task": self.task.state_dict()}
+                "kept_fraction": self.kept_fraction, "history": self.history, "train_seconds": self.train_seconds,
+                "task": self.task.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         from .checkpoint import CheckpointError, set_rng_state
