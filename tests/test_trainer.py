@@ -385,6 +385,35 @@ def test_unbounded_builtin_scene_trains_background_included(tmp_path, model):
     assert trainer.occupancy.occupied_fraction() > 0.0
 
 
+def test_opaque_photos_train_an_opaque_field():
+    """Photos without a background (LLFF and captures load alpha = 1 everywhere) train against
+    random per-ray backgrounds like scenes with alpha: transmittance left at a ray's end shows the
+    random colour and is penalised, so the field becomes opaque on every pixel instead of
+    explaining plain regions by transparency, as it does with a fixed background (fern: +0.8 dB)."""
+    scene = tiny_scene()
+    scene.train.alpha = torch.ones(scene.train.images.shape[:3])
+    test = scene.test
+    opacity = {}
+    for random_background in (True, False):
+        cfg = build_config("full", overrides={**TINY, "iters": 200, "random_background": random_background})
+        trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
+        trainer.fit(progress=False)
+        img = trainer.renderer.render_image(test.c2w[0], test.height, test.width, test.focal, test.cx, test.cy)
+        opacity[random_background] = img["opacity"]
+    # pixels whose ray crosses the scene box (slab test): the others get no sample either way
+    from warpnerf.renderer import pixel_rays
+
+    v, u = torch.meshgrid(torch.arange(test.height) + 0.5, torch.arange(test.width) + 0.5, indexing="ij")
+    o, d = pixel_rays(test.c2w[0][None].expand(u.numel(), 3, 4), u.reshape(-1), v.reshape(-1), test.focal, test.cx,
+                      test.cy)
+    t0, t1 = (-1.0 - o) / d, (1.0 - o) / d
+    crosses = (torch.minimum(t0, t1).amax(-1) < torch.maximum(t0, t1).amin(-1)).view(test.height, test.width)
+    on, off = opacity[True][crosses], opacity[False][crosses]
+    # the tiny scene's white background lies beyond the box: an opaque field paints it on the box's walls
+    # measured (seed 0): mean opacity 0.93 with random backgrounds (seeds 1, 2: 0.95, 0.92), 0.15 without
+    assert float(on.mean()) > 0.85 and float(off.mean()) < 0.4, (float(on.mean()), float(off.mean()))
+
+
 @pytest.mark.parametrize("kind,sigma", [("blender", 0.15), ("llff", 0.01), ("colmap", 0.01), ("transforms", 0.01),
                                         ("unbounded", 0.01)])
 def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):

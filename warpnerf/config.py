@@ -97,7 +97,7 @@ class TrainConfig:
     lr: float = 1e-2  # Adam learning rate of the hash table and the MLPs
     lr_final_ratio: float = 0.1  # exponential decay of lr to lr * ratio at the last step
     lr_warmup: int = 100  # steps of linear lr warm-up from 1 % of lr (nerfacc), at most iters // 10; keeps thin scenes stable
-    random_background: bool = True  # scenes with alpha: train against random per-ray backgrounds (instant-ngp)
+    random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     # --- G²fR (paper eq. 15) ---
     g2fr: bool = False  # mask grid levels coarse to fine
