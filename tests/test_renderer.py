@@ -133,7 +133,7 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     autograd, then differentiates only the samples before each ray turned opaque, reusing their
     grid encoding (``Renderer.compact_training``): the pixels and every gradient (grid, MLPs,
     ray origins: the pose task's path) equal those of differentiating every sample, up to the
-    MLPs' float summation order over fewer rows."""
+    MLPs' float summation order over fewer rows; the distortion loss too."""
     from warpnerf.encoders import HashGridEncoder
     from warpnerf.field import GridField
     from warpnerf.ops.hashgrid import HashGridSpec
@@ -154,8 +154,8 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     results = []
     for compact in (False, True):
         r.compact_training = compact
-        out = r.render_rays(o, d, weights if field_kind == "grid" else None, jitter)
-        loss = (out.rgb * torch.linspace(0.5, 1.5, 3)).square().sum() + out.depth.sum() * 1e-2
+        out = r.render_rays(o, d, weights if field_kind == "grid" else None, jitter, distortion=True)
+        loss = (out.rgb * torch.linspace(0.5, 1.5, 3)).square().sum() + out.depth.sum() * 1e-2 + out.distortion.sum()
         results.append((out, torch.autograd.grad(loss, params, allow_unused=True)))
     (full, grads_full), (cut, grads_cut) = results
     assert full.n_samples == cut.n_samples == full.n_active
@@ -163,6 +163,9 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     assert cut.n_active < 0.6 * cut.n_samples, (cut.n_active, cut.n_samples)
     torch.testing.assert_close(cut.rgb, full.rgb, rtol=0, atol=1e-6)
     torch.testing.assert_close(cut.opacity, full.opacity, rtol=0, atol=1e-6)
+    # the distortion loss (warpnerf.losses) sees the same weights: those behind are exactly 0
+    assert float(full.distortion.detach().max()) > 0
+    torch.testing.assert_close(cut.distortion, full.distortion, rtol=1e-5, atol=1e-7)
     for i, (a, b) in enumerate(zip(grads_cut, grads_full)):
         if b is None:
             assert a is None

@@ -97,6 +97,7 @@ class TrainConfig:
     lr: float = 1e-2  # Adam learning rate of the hash table and the MLPs
     lr_final_ratio: float = 0.1  # exponential decay of lr to lr * ratio at the last step
     lr_warmup: int = 100  # steps of linear lr warm-up from 1 % of lr (nerfacc), at most iters // 10; keeps thin scenes stable
+    distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on the ray space's t (0 = off); concentrates each ray's weight, removing haze
     random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     # --- G²fR (paper eq. 15) ---

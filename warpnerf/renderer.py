@@ -24,6 +24,7 @@ from typing import Optional
 import torch
 
 from .data.rayspace import RaySpace
+from .losses import distortion_loss, packed_weights
 from .occupancy import OccupancyGrid
 from .ops.composite import TRANSMITTANCE_EPS, active_sample_counts, composite_rays
 from .ops.raymarch import MarchState, PackedSamples, march_rays_window, march_rays_within_budget, prefix_rows
@@ -68,6 +69,8 @@ class RenderOutput:
     # samples evaluated with autograd: training drops those behind each ray's opaque point
     # (Renderer.compact_training); n_samples counts every marched sample
     n_active: int = -1
+    # (R,) mip-NeRF 360's distortion loss per ray, when render_rays was asked for it
+    distortion: Optional[torch.Tensor] = None
 
 
 class Renderer:
@@ -118,7 +121,7 @@ class Renderer:
 
     def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, level_weights: Optional[torch.Tensor] = None,
                     jitter: Optional[torch.Tensor] = None, background: Optional[torch.Tensor] = None,
-                    compact: Optional[bool] = None) -> RenderOutput:
+                    compact: Optional[bool] = None, distortion: bool = False) -> RenderOutput:
         """Render (R, 3) rays (unit directions). Differentiable w.r.t. the field and the rays.
 
         At most ``sample_budget`` samples are taken: if the rays would need more, only the first
@@ -126,7 +129,8 @@ class Renderer:
         memory stays bounded however empty or full the occupancy grid is. ``background``: optional
         (R, 3) per-ray colours replacing the renderer's constant one (random backgrounds). ``compact``:
         with autograd, differentiate only the samples before each ray turned opaque
-        (:meth:`_active_prefixes`; same pixels and gradients); ``None``: ``compact_training``."""
+        (:meth:`_active_prefixes`; same pixels and gradients); ``None``: ``compact_training``.
+        ``distortion``: also return each ray's distortion loss (:func:`warpnerf.losses.distortion_loss`)."""
         view_dirs = rays_d
         o, d = self.ray_space.apply(rays_o, rays_d)
         with torch.no_grad():
@@ -149,8 +153,11 @@ class Renderer:
         bg = self.background if background is None else background
         color, opacity, depth = composite_rays(sigma, rgb, packed.t_starts, packed.t_ends, packed.ray_offsets,
                                                packed.ray_counts, bg)
+        dist = None
+        if distortion:  # the weights again, with autograd (the composite's are not returned differentiably)
+            dist = distortion_loss(packed_weights(sigma, packed), packed, rays_o.shape[0])
         return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), n_samples, n_marched,
-                            int(ray.shape[0]))
+                            int(ray.shape[0]), dist)
 
     def _points(self, o: torch.Tensor, d: torch.Tensor, packed: PackedSamples):
         """Ray index (S,) int64 and field-space position (S, 3) of every packed sample's midpoint."""

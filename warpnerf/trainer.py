@@ -123,12 +123,16 @@ class Trainer:
         # the step time) and costs when few do (fern, 1 % behind: 1.15x): compact while the last
         # compacted step kept less than COMPACT_BELOW of its samples, and probe every 16 steps
         compact = step % COMPACT_PROBE_EVERY == 0 or self.kept_fraction < COMPACT_BELOW
-        out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights, jitter, background, compact=compact)
+        out = self.renderer.render_rays(o.contiguous(), d.contiguous(), weights, jitter, background, compact=compact,
+                                        distortion=cfg.distortion_weight > 0)
         if compact:
             self.kept_fraction = out.n_active / max(out.n_samples, 1)
         # rays past the sample budget got no samples: leave them out of the loss
         kept = out.n_rays
-        loss = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
+        mse = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
+        loss = mse
+        if out.distortion is not None and kept:
+            loss = mse + cfg.distortion_weight * out.distortion[:kept].mean()
         with torch.no_grad():
             # the loss of rendering nothing (background only) on the same pixels: see check_learning
             bg = self.background.expand_as(target) if background is None else background
@@ -148,7 +152,8 @@ class Trainer:
         spr = out.n_samples / max(kept, 1)
         want = cfg.target_samples / max(spr, 1.0)
         self.n_rays = int(min(max(0.5 * self.n_rays + 0.5 * want, 256), 1 << 16))
-        return {"loss": loss.item(), "empty_loss": empty_loss.item(), "samples_per_ray": spr}
+        # "loss" is the photometric MSE (PSNR, the learning check); a regulariser is not in it
+        return {"loss": mse.item(), "empty_loss": empty_loss.item(), "samples_per_ray": spr}
 
     def check_learning(self, step: int, loss_ratio: float) -> None:
         """Stop a run that is not learning, with one line naming the step and what to try.
