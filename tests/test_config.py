@@ -126,3 +126,11 @@ def test_g2fr_beta_has_one_default():
 def test_occ_uniform_fraction_is_checked(bad):
     with pytest.raises(C.ConfigError, match="^occ_uniform_fraction must be in"):
         C.validate(C.build_config("full", overrides={"occ_uniform_fraction": bad}))
+
+
+@pytest.mark.parametrize("bad", [-0.01, float("nan"), float("inf")])
+def test_distortion_weight_is_checked(bad):
+    """A negative weight would reward spreading each ray's weight; NaN or inf would poison the loss."""
+    with pytest.raises(C.ConfigError, match="^distortion_weight must be a finite number >= 0"):
+        C.validate(C.build_config("full", overrides={"distortion_weight": bad}))
+    C.validate(C.build_config("full", overrides={"distortion_weight": 0.01}))

@@ -323,7 +323,8 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"occ_uniform_fraction must be in (0, 1], got {cfg.occ_uniform_fraction}")
     if not math.isfinite(cfg.cp_density_shift):
         raise ConfigError(f"cp_density_shift must be a finite number, got {cfg.cp_density_shift}")
-    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step", "occ_threshold"):
+    for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step", "occ_threshold",
+                "distortion_weight"):
         value = getattr(cfg, key)
         if value is not None and not (value >= 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a finite number >= 0, got {value}")
