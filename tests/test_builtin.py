@@ -110,3 +110,39 @@ def test_every_builtin_has_a_description():
     scenes = builtin_scenes()
     assert len(scenes) >= 3 and "chair" in scenes
     assert all(isinstance(d, str) and 10 < len(d) < 120 and "\n" not in d for d in scenes.values())
+
+
+def test_forward_facing_builtin_is_an_llff_capture(tmp_path):
+    """The built-in 'yard' is a forward-facing capture written in the LLFF layout: it loads through
+    load_llff (NDC ray space, every 8th view held out, opaque photos), and poses_bounds.npy decodes
+    back to the cameras it was rendered from, with each view's depth bounds."""
+    from warpnerf.data.llff import llff_to_opengl
+
+    cache = str(tmp_path)
+    scene = load_builtin("yard", 32, cache, counts=(10,), progress=False)
+    assert (scene.source, scene.kind, scene.name) == ("builtin", "llff", "yard")
+    assert scene.ray_space.kind == "ndc" and scene.val is None
+    assert scene.train.images.shape == (8, 24, 32, 3) and scene.test.ids == [0, 8]
+    assert bool((scene.train.alpha == 1).all())
+    pb = np.load(os.path.join(builtin.ensure_builtin("yard", 32, cache, (10,)), "poses_bounds.npy"))
+    poses = pb[:, :15].reshape(-1, 3, 5)
+    np.testing.assert_allclose(llff_to_opengl(poses[:, :, :4]), builtin.forward_facing_cameras(10), atol=1e-6)
+    np.testing.assert_allclose(poses[:, :, 4], np.tile([24.0, 32.0, builtin.focal_from_angle(32)], (10, 1)))
+    near, far = pb[:, 15], pb[:, 16]
+    # the chair is ~4.8 units away, the environment sphere 15 units from the origin
+    assert (near > 3.0).all() and (near < 5.0).all() and (far > 15.0).all() and (far < 21.0).all()
+    # forward-facing: recentred, every camera looks down -z (its back axis is ~ +z)
+    assert float(scene.train.c2w[:, 2, 2].min()) > 0.99
+    # the test views are spread over the patch of camera centres, not along one edge
+    centres = np.concatenate([scene.train.c2w[:, :2, 3].numpy(), scene.test.c2w[:, :2, 3].numpy()])
+    test_x = scene.test.c2w[:, 0, 3].numpy()
+    assert test_x.max() - test_x.min() > 0.3 * (centres[:, 0].max() - centres[:, 0].min())
+
+
+def test_builtin_view_counts_are_checked(tmp_path):
+    with pytest.raises(DatasetError, match=r"'yard' takes view counts \(views,\)"):
+        load_builtin("yard", 16, str(tmp_path), counts=(4, 2, 3), progress=False)
+    with pytest.raises(DatasetError, match=r"'chair' takes view counts \(train, val, test\)"):
+        load_builtin("chair", 16, str(tmp_path), counts=(4,), progress=False)
+    with pytest.raises(DatasetError, match="already a capture in the LLFF layout"):
+        builtin.export_builtin("yard", str(tmp_path / "out"), "transforms", 16, str(tmp_path), (9,), progress=False)

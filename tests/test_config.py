@@ -134,3 +134,38 @@ def test_distortion_weight_is_checked(bad):
     with pytest.raises(C.ConfigError, match="^distortion_weight must be a finite number >= 0"):
         C.validate(C.build_config("full", overrides={"distortion_weight": bad}))
     C.validate(C.build_config("full", overrides={"distortion_weight": 0.01}))
+
+
+def test_forward_facing_scenes_get_their_preset(tmp_path, monkeypatch):
+    """task=full on a forward-facing scene (LLFF layout: a dataset scene or the built-in 'yard') merges
+    configs/full_forward_facing.toml over full.toml; other scenes and tasks keep their presets, and
+    --config files and flags still win over it."""
+    monkeypatch.delenv("WARPNERF_DATA", raising=False)
+    ff = C.load_toml(C.preset_path("full" + C.FORWARD_FACING_SUFFIX))
+    assert ff["distortion_weight"] > 0 and ff["march_steps"] == 256
+    full = C.load_toml(C.preset_path("full"))
+
+    def picked(cfg, preset):
+        return {k: getattr(cfg, k) for k in preset}
+
+    assert picked(C.build_config("full", overrides={"scene": "yard"}), ff) == ff
+    assert picked(C.build_config("full", overrides={"scene": "chair"}), ff) == {
+        k: full.get(k, getattr(C.TrainConfig, k)) for k in ff}
+    assert C.build_config("fewshot", overrides={"scene": "yard"}).distortion_weight == 0.0
+    assert C.build_config("full", overrides={"scene": "yard", "march_steps": 384}).march_steps == 384
+    cfg_file = tmp_path / "mine.toml"
+    cfg_file.write_text("occ_threshold = 0.02\n")
+    assert C.build_config("full", str(cfg_file), {"scene": "yard"}).occ_threshold == 0.02
+    # dataset scenes: by layout, found under the data root as loading would find them
+    root = tmp_path / "data"
+    (root / "nerf_llff_data" / "leaves").mkdir(parents=True)
+    (root / "nerf_llff_data" / "leaves" / "poses_bounds.npy").write_bytes(b"")
+    (root / "nerf_synthetic" / "yard").mkdir(parents=True)
+    (root / "nerf_synthetic" / "yard" / "transforms_train.json").write_text("{}")
+    assert C.build_config("full", overrides={"scene": "leaves", "data_root": str(root)}).march_steps == 256
+    # a dataset scene named like the built-in one shadows it: a Blender scene is not forward-facing
+    assert C.build_config("full", overrides={"scene": "yard", "data_root": str(root)}).march_steps == full["march_steps"]
+    monkeypatch.setenv("WARPNERF_DATA", str(root))
+    assert C.build_config("full", overrides={"scene": "leaves"}).distortion_weight == ff["distortion_weight"]
+    # an unusable data root is loading's error to report, not the config's
+    assert C.build_config("full", overrides={"scene": "yard", "data_root": str(tmp_path / "none")}).march_steps == 256

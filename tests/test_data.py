@@ -51,7 +51,7 @@ def test_missing_data_root_is_an_error(tmp_path):
 
 def test_list_and_describe(data_root, tmp_path, monkeypatch):
     builtins, datasets = list_scenes(data_root)
-    assert builtins == ["chair", "lamp", "vase", "stand", "garden"] and datasets == ["chair", "leaves", "mic"]
+    assert builtins == ["chair", "lamp", "vase", "stand", "garden", "yard"] and datasets == ["chair", "leaves", "mic"]
     text = describe_scenes(data_root, cache_dir=str(tmp_path / "cache"))
     assert "lamp" in text and "leaves  llff" in text and "overrides the built-in scene" in text
     monkeypatch.delenv("WARPNERF_DATA", raising=False)

@@ -268,20 +268,36 @@ def preset_path(task: str) -> str:
     return str(resources.files("warpnerf.configs").joinpath(f"{task}.toml"))
 
 
+FORWARD_FACING_SUFFIX = "_forward_facing"
+
+
 def build_config(task: str, config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
-    """Defaults < task preset < ``config_file`` < ``overrides`` (only keys whose value is not None)."""
+    """Defaults < task preset < forward-facing preset < ``config_file`` < ``overrides`` (only keys
+    whose value is not None).
+
+    The forward-facing preset (``configs/<task>_forward_facing.toml``, where one is shipped) applies
+    when the scene resolves to a forward-facing one (LLFF layout: fern, the built-in ``yard``;
+    :func:`warpnerf.data.resolve.is_forward_facing`)."""
     values: dict[str, Any] = {}
     preset = preset_path(task)
     if os.path.exists(preset):
         values.update(load_toml(preset))
-    if config_file:
-        values.update(load_toml(config_file))
-    values["task"] = task
+    file_values = load_toml(config_file) if config_file else {}
     for k, v in (overrides or {}).items():
         if k not in _field_types():
             raise ConfigError(f"unknown config key '{k}'")
-        if v is not None:
-            values[k] = v
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    ff_preset = preset_path(task + FORWARD_FACING_SUFFIX)
+    if os.path.exists(ff_preset):
+        from .data.resolve import is_forward_facing
+
+        chosen = {**values, **file_values, **given}
+        scene = chosen.get("scene", TrainConfig.scene)
+        if is_forward_facing(scene, chosen.get("data_root")):
+            values.update(load_toml(ff_preset))
+    values.update(file_values)
+    values["task"] = task
+    values.update(given)
     cfg = TrainConfig(**values)
     validate(cfg)
     return cfg

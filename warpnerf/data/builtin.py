@@ -21,6 +21,11 @@ cameras or file format change, so stale caches are never reused.
 
 Images are one ray per pixel centre (no antialiasing), so alpha is exactly 0 or 1 and depth is
 exact; this also matches how NeRF renders a pixel (one ray through its centre).
+
+The forward-facing scene (:data:`FORWARD_FACING`, ``yard``) is a hand-held-style capture of the
+garden instead: 32 views from a small patch of positions, all looking the same way, written in
+the LLFF layout (``images/000.png ...`` and ``poses_bounds.npy`` with each view's depth bounds)
+and loaded by :func:`warpnerf.data.llff.load_llff`, so it trains in NDC like fern.
 """
 
 from __future__ import annotations
@@ -68,10 +73,43 @@ GARDEN_SCALE = 0.5
 GARDEN_NEAR = 0.05  # normalised units (0.1 scene units)
 GARDEN_DEPTH_SCALE = 3000.0  # the environment is up to ~19 units away: 16-bit depth up to 21.8 units
 
+# Forward-facing built-in scenes: the garden photographed as LLFF scenes are (module doc)
+FORWARD_FACING = {
+    "yard": "the garden's chair from the front, a hand-held forward-facing capture (LLFF layout, NDC)",
+}
+FF_VIEWS = 32  # LLFF scenes hold 20-60 photos; every 8th is a test view (load_llff's holdout)
+FF_RESOLUTION = 320  # image width in pixels; the height is 3/4 of it (fern's images_8: 504 x 378)
+FF_SEED = 2
+FF_ELEVATION_DEG = 12.0  # the central camera, seen from the chair's middle (FF_AIM): above the horizon
+FF_AZIMUTH_DEG = -60.0
+FF_DISTANCE = 4.8
+FF_AIM = (0.0, 0.0, 0.2)
+FF_SPREAD = (1.0, 0.5)  # the patch of camera centres: width and height in scene units (the chair ~1.2 wide)
+FF_PERCENTILES = (0.1, 99.9)  # depth bounds per view, as LLFF takes them from COLMAP's points
+
 
 def builtin_scenes() -> dict[str, str]:
     """Name -> one-line description of every built-in scene."""
-    return {**{name: desc for name, (_, desc) in SCENES.items()}, **UNBOUNDED}
+    return {**{name: desc for name, (_, desc) in SCENES.items()}, **UNBOUNDED, **FORWARD_FACING}
+
+
+def default_counts(name: str) -> tuple:
+    """View counts of a built-in scene: (train, val, test) for object and unbounded scenes,
+    (views,) for forward-facing ones (LLFF holds every 8th view out for testing)."""
+    return (FF_VIEWS,) if name in FORWARD_FACING else DEFAULT_COUNTS
+
+
+def _counts(name: str, counts) -> tuple:
+    counts = default_counts(name) if counts is None else tuple(int(c) for c in counts)
+    if len(counts) != len(default_counts(name)):
+        kind = "(views,)" if name in FORWARD_FACING else "(train, val, test)"
+        raise DatasetError(f"built-in scene '{name}' takes view counts {kind}, got {counts}")
+    return counts
+
+
+def default_resolution(name: str) -> int:
+    """Image width of a built-in scene when none is asked for."""
+    return FF_RESOLUTION if name in FORWARD_FACING else DEFAULT_RESOLUTION
 
 
 def scene_mesh(name: str) -> SceneMesh:
@@ -119,6 +157,36 @@ def split_cameras(counts=DEFAULT_COUNTS) -> dict[str, np.ndarray]:
         "val": hemisphere_cameras(n_val, _SPLIT_SEEDS["val"]),
         "test": orbit_cameras(n_test),
     }
+
+
+def forward_facing_cameras(n: int = FF_VIEWS, seed: int = FF_SEED) -> np.ndarray:
+    """(n, 3, 4) cameras of a hand-held forward-facing capture of the garden's chair.
+
+    Centres on a jittered grid over a FF_SPREAD patch facing the chair from FF_DISTANCE, all
+    looking at one point 8 units beyond the chair (nearly parallel axes, as an LLFF capture), in
+    a fixed random order so that every 8th view (the test views) lies anywhere in the patch, not
+    along one edge."""
+    rng = np.random.default_rng(seed)
+    el, az = math.radians(FF_ELEVATION_DEG), math.radians(FF_AZIMUTH_DEG)
+    forward = -np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    centre = np.asarray(FF_AIM) - FF_DISTANCE * forward
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    cols = max(int(round(math.sqrt(n * FF_SPREAD[0] / FF_SPREAD[1]))), 1)
+    rows = -(-n // cols)
+    k = rng.permutation(rows * cols)[:n]
+    gx = ((k % cols) + 0.5 + rng.uniform(-0.3, 0.3, n)) / cols - 0.5
+    gy = ((k // cols) + 0.5 + rng.uniform(-0.3, 0.3, n)) / rows - 0.5
+    eyes = centre + np.outer(gx * FF_SPREAD[0], right) + np.outer(gy * FF_SPREAD[1], up)
+    return look_at(eyes, target=tuple(np.asarray(FF_AIM) + 8.0 * forward))
+
+
+def opengl_to_llff(c2w: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) OpenGL [right, up, back | t] -> LLFF [down, right, back | t]; the inverse of
+    :func:`warpnerf.data.llff.llff_to_opengl`."""
+    c2w = np.asarray(c2w, np.float64)
+    return np.concatenate([-c2w[:, :, 1:2], c2w[:, :, 0:1], c2w[:, :, 2:4]], axis=2)
 
 
 def focal_from_angle(width: int, camera_angle_x: float = CAMERA_ANGLE_X) -> float:
@@ -231,9 +299,10 @@ def cache_root(cache_dir: str | None = None) -> str:
     return os.path.join(os.path.abspath(os.path.expanduser(base)), "scenes")
 
 
-def cache_key(name: str, resolution: int, counts=DEFAULT_COUNTS) -> str:
+def cache_key(name: str, resolution: int, counts=None) -> str:
+    counts = _counts(name, counts)
     key = f"{name}_{resolution}px_g{GENERATOR_VERSION}"
-    if tuple(counts) != DEFAULT_COUNTS:
+    if counts != default_counts(name):
         key += "_n" + "-".join(str(c) for c in counts)
     return key
 
@@ -258,13 +327,15 @@ def ensure_builtin(
     name: str,
     resolution: int | None = None,
     cache_dir: str | None = None,
-    counts=DEFAULT_COUNTS,
+    counts=None,
     progress: bool = True,
 ) -> str:
-    """Generate the built-in scene if its cache folder is missing or incomplete; returns the folder."""
+    """Generate the built-in scene if its cache folder is missing or incomplete; returns the folder.
+    ``counts``: see :func:`default_counts` (None: the scene's default)."""
     if name not in builtin_scenes():
         raise DatasetError(f"unknown built-in scene '{name}'; built-in scenes: {', '.join(SCENES)}")
-    resolution = int(resolution or DEFAULT_RESOLUTION)
+    counts = _counts(name, counts)
+    resolution = int(resolution or default_resolution(name))
     if resolution < 1:
         raise DatasetError(f"resolution must be a positive number of pixels, got {resolution}")
     root = cache_root(cache_dir)
@@ -313,13 +384,19 @@ def _remove_stale_temps(root: str, key: str) -> None:
         shutil.rmtree(os.path.join(root, entry), ignore_errors=True)
 
 
-def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTION, counts=DEFAULT_COUNTS, progress: bool = True) -> None:
-    """Render a built-in scene into ``out_dir`` in the Blender layout, marker file last."""
+def generate_builtin(name: str, out_dir: str, resolution: int | None = None, counts=None, progress: bool = True) -> None:
+    """Render a built-in scene into ``out_dir`` in the Blender layout (forward-facing scenes: the
+    LLFF layout, :func:`generate_forward_facing`), marker file last."""
     from PIL import Image
     from tqdm import tqdm
 
     from warpnerf.data.images import load_parallel
 
+    counts = _counts(name, counts)
+    resolution = int(resolution or default_resolution(name))
+    if name in FORWARD_FACING:
+        generate_forward_facing(name, out_dir, resolution, counts[0], progress)
+        return
     t0 = time.time()
     if name in UNBOUNDED:
         renderer, depth_scale = GardenRenderer(), GARDEN_DEPTH_SCALE
@@ -381,6 +458,49 @@ def generate_builtin(name: str, out_dir: str, resolution: int = DEFAULT_RESOLUTI
         json.dump(marker, f)
 
 
+def generate_forward_facing(name: str, out_dir: str, width: int = FF_RESOLUTION, n_views: int = FF_VIEWS,
+                            progress: bool = True) -> None:
+    """Render forward-facing scene ``name`` into ``out_dir`` in the LLFF layout, marker file last:
+    ``images/000.png ...`` (RGB, every pixel covered) and ``poses_bounds.npy`` ((N, 17): the LLFF
+    [down, right, back | centre | height, width, focal] matrix and the 0.1 / 99.9 percentiles of
+    the view's depth, :data:`FF_PERCENTILES`)."""
+    from PIL import Image
+    from tqdm import tqdm
+
+    from warpnerf.data.images import load_parallel
+
+    t0 = time.time()
+    height = max(int(round(width * 0.75)), 1)
+    focal = focal_from_angle(width)
+    c2w = forward_facing_cameras(n_views)
+    renderer = GardenRenderer()
+    os.makedirs(os.path.join(out_dir, "images"), exist_ok=True)
+    rows = []
+    batch = 8
+    with tqdm(total=n_views, desc=f"rendering built-in scene '{name}' at {width}x{height}", unit="view",
+              disable=not progress) as bar:
+        for start in range(0, n_views, batch):
+            rgba, depth = renderer.render(c2w[start:start + batch], width, height, focal)
+            rgb8 = np.round(rgba[..., :3] * 255.0).astype(np.uint8)
+
+            def write(k: int, path: str) -> None:
+                Image.fromarray(rgb8[k], "RGB").save(path, compress_level=3)
+
+            paths = [os.path.join(out_dir, "images", f"{start + k:03d}.png") for k in range(len(rgb8))]
+            load_parallel(paths, write, threads=2)
+            for k in range(len(rgb8)):
+                near, far = np.percentile(depth[k][depth[k] > 0], FF_PERCENTILES)
+                hwf = np.array([[height], [width], [focal]], np.float64)
+                mat = np.concatenate([opengl_to_llff(c2w[start + k:start + k + 1])[0], hwf], axis=1)
+                rows.append(np.concatenate([mat.reshape(-1), [near, far]]))
+            bar.update(len(rgb8))
+    np.save(os.path.join(out_dir, "poses_bounds.npy"), np.stack(rows))
+    marker = {"generator_version": GENERATOR_VERSION, "scene": name, "resolution": width, "counts": [n_views],
+              "seconds": round(time.time() - t0, 2)}
+    with open(os.path.join(out_dir, _MARKER), "w", encoding="utf-8") as f:
+        json.dump(marker, f)
+
+
 def load_builtin(
     name: str,
     resolution: int | None = None,
@@ -388,11 +508,12 @@ def load_builtin(
     downscale: int = 1,
     splits: tuple[str, ...] = ("train", "val", "test"),
     white_background: bool = True,
-    counts=DEFAULT_COUNTS,
+    counts=None,
     progress: bool = True,
 ) -> Scene:
     """Generate (once) and load a built-in scene (source "builtin", kind "blender"; the unbounded
-    ones, :data:`UNBOUNDED`, kind "unbounded" with a contracted ray space).
+    ones, :data:`UNBOUNDED`, kind "unbounded" with a contracted ray space; the forward-facing
+    ones, :data:`FORWARD_FACING`, kind "llff" with LLFF's NDC ray space, train and test views only).
 
     Args:
         name: one of :func:`builtin_scenes`.
@@ -400,11 +521,18 @@ def load_builtin(
         cache_dir: overrides ``$WARPNERF_CACHE``.
         downscale, splits, white_background: as in :func:`warpnerf.data.blender.load_blender`.
         counts: (train, val, test) view counts; the defaults follow NeRF-synthetic (100, 100, 200).
+            Forward-facing scenes: (views,), default (FF_VIEWS,).
         progress: show a tqdm bar while generating.
     """
     from warpnerf.data.blender import load_blender
 
     folder = ensure_builtin(name, resolution, cache_dir, counts, progress)
+    if name in FORWARD_FACING:
+        from warpnerf.data.llff import load_llff
+
+        scene = load_llff(folder, factor=1, downscale=downscale, name=name)
+        scene.source = "builtin"
+        return scene
     scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
     scene.source = "builtin"
     if name in UNBOUNDED:
@@ -426,7 +554,7 @@ def export_builtin(
     layout: str,
     resolution: int | None = None,
     cache_dir: str | None = None,
-    counts=DEFAULT_COUNTS,
+    counts=None,
     points_per_view: int = 200,
     progress: bool = True,
 ) -> str:
@@ -447,6 +575,9 @@ def export_builtin(
     """
     if layout not in EXPORT_LAYOUTS:
         raise DatasetError(f"unknown export layout '{layout}'; choose one of {', '.join(EXPORT_LAYOUTS)}")
+    if name in FORWARD_FACING:
+        raise DatasetError(f"built-in scene '{name}' is already a capture in the LLFF layout: "
+                           f"{ensure_builtin(name, resolution, cache_dir, counts, progress)}")
     from PIL import Image
 
     from warpnerf.data.blender import read_depth, read_transforms

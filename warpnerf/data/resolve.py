@@ -84,6 +84,22 @@ def dataset_scenes(data_root: str | None) -> dict[str, tuple[str, str]]:
     return found
 
 
+def is_forward_facing(name: str, data_root: str | None = None) -> bool:
+    """Whether scene ``name`` resolves (as :func:`load_scene` would) to a forward-facing scene, one
+    trained in LLFF's NDC ray space: a dataset scene in the LLFF layout or a built-in forward-facing
+    one. Looks at file names only; an unusable data root counts as none (loading reports it)."""
+    from warpnerf.data.builtin import FORWARD_FACING
+
+    try:
+        root = data_root_from(data_root)
+    except DatasetError:
+        root = None
+    hit = find_dataset(name, root)
+    if hit:
+        return hit[1] == "llff"
+    return name in FORWARD_FACING
+
+
 def list_scenes(data_root: str | None = None) -> tuple[list[str], list[str]]:
     """(built-in scene names, dataset scene names under the data root)."""
     from warpnerf.data.builtin import builtin_scenes
