@@ -271,13 +271,23 @@ def preset_path(task: str) -> str:
 FORWARD_FACING_SUFFIX = "_forward_facing"
 
 
+def forward_facing_preset(task: str, scene: str, data_root: Optional[str]) -> Optional[str]:
+    """Path of ``configs/<task>_forward_facing.toml`` when one is shipped for ``task`` and ``scene``
+    resolves to a forward-facing scene (LLFF layout: fern, the built-in ``yard``;
+    :func:`warpnerf.data.resolve.is_forward_facing`), else None."""
+    path = preset_path(task + FORWARD_FACING_SUFFIX)
+    if not os.path.exists(path):
+        return None
+    from .data.resolve import is_forward_facing
+
+    return path if is_forward_facing(scene, data_root) else None
+
+
 def build_config(task: str, config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
     """Defaults < task preset < forward-facing preset < ``config_file`` < ``overrides`` (only keys
     whose value is not None).
 
-    The forward-facing preset (``configs/<task>_forward_facing.toml``, where one is shipped) applies
-    when the scene resolves to a forward-facing one (LLFF layout: fern, the built-in ``yard``;
-    :func:`warpnerf.data.resolve.is_forward_facing`)."""
+    The forward-facing preset applies where :func:`forward_facing_preset` finds one."""
     values: dict[str, Any] = {}
     preset = preset_path(task)
     if os.path.exists(preset):
@@ -287,14 +297,10 @@ def build_config(task: str, config_file: Optional[str] = None, overrides: Option
         if k not in _field_types():
             raise ConfigError(f"unknown config key '{k}'")
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
-    ff_preset = preset_path(task + FORWARD_FACING_SUFFIX)
-    if os.path.exists(ff_preset):
-        from .data.resolve import is_forward_facing
-
-        chosen = {**values, **file_values, **given}
-        scene = chosen.get("scene", TrainConfig.scene)
-        if is_forward_facing(scene, chosen.get("data_root")):
-            values.update(load_toml(ff_preset))
+    chosen = {**values, **file_values, **given}
+    ff_preset = forward_facing_preset(task, chosen.get("scene", TrainConfig.scene), chosen.get("data_root"))
+    if ff_preset:
+        values.update(load_toml(ff_preset))
     values.update(file_values)
     values["task"] = task
     values.update(given)

@@ -22,7 +22,7 @@ import torch
 
 from . import device as devmod
 from .checkpoint import atomic_write_text
-from .config import FORWARD_FACING_SUFFIX, ConfigError, TrainConfig, build_config, load_toml, preset_path
+from .config import ConfigError, TrainConfig, build_config, forward_facing_preset, load_toml
 from .evaluate import evaluate, write_json
 from .tasks import make_task
 from .trainer import Trainer, TrainingError
@@ -224,8 +224,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         os.unlink(os.path.join(out_dir, "metrics.json"))  # --force on a finished run: it is unfinished again
     write_config(os.path.join(out_dir, "config.toml"), cfg)
     preset = f"configs/{cfg.task}.toml"
-    if scene.ray_space.kind == "ndc" and os.path.exists(preset_path(cfg.task + FORWARD_FACING_SUFFIX)):
-        preset += f" + {cfg.task}{FORWARD_FACING_SUFFIX}.toml"
+    ff_preset = forward_facing_preset(cfg.task, cfg.scene, cfg.data_root)  # as build_config decided
+    if ff_preset:
+        preset += f" + {os.path.basename(ff_preset)}"
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}"
           + (f"; resumed at step {trainer.step}" if mode == "resume" else ""))

@@ -387,16 +387,16 @@ def _remove_stale_temps(root: str, key: str) -> None:
 def generate_builtin(name: str, out_dir: str, resolution: int | None = None, counts=None, progress: bool = True) -> None:
     """Render a built-in scene into ``out_dir`` in the Blender layout (forward-facing scenes: the
     LLFF layout, :func:`generate_forward_facing`), marker file last."""
-    from PIL import Image
-    from tqdm import tqdm
-
-    from warpnerf.data.images import load_parallel
-
     counts = _counts(name, counts)
     resolution = int(resolution or default_resolution(name))
     if name in FORWARD_FACING:
         generate_forward_facing(name, out_dir, resolution, counts[0], progress)
         return
+    from PIL import Image
+    from tqdm import tqdm
+
+    from warpnerf.data.images import load_parallel
+
     t0 = time.time()
     if name in UNBOUNDED:
         renderer, depth_scale = GardenRenderer(), GARDEN_DEPTH_SCALE
@@ -447,6 +447,11 @@ def generate_builtin(name: str, out_dir: str, resolution: int | None = None, cou
             }
             with open(os.path.join(out_dir, f"transforms_{split}.json"), "w", encoding="utf-8") as f:
                 json.dump(meta, f, indent=1)
+    _write_marker(out_dir, name, resolution, counts, t0)
+
+
+def _write_marker(out_dir: str, name: str, resolution: int, counts, t0: float) -> None:
+    """The marker that makes a generated folder complete (:func:`is_complete`); written last."""
     marker = {
         "generator_version": GENERATOR_VERSION,
         "scene": name,
@@ -473,9 +478,12 @@ def generate_forward_facing(name: str, out_dir: str, width: int = FF_RESOLUTION,
     height = max(int(round(width * 0.75)), 1)
     focal = focal_from_angle(width)
     c2w = forward_facing_cameras(n_views)
+    # each view's row of poses_bounds.npy: the LLFF pose with (height, width, focal) as a 5th column
+    hwf = np.tile(np.array([[height], [width], [focal]], np.float64), (n_views, 1, 1))
+    poses = np.concatenate([opengl_to_llff(c2w), hwf], axis=2).reshape(n_views, 15)
     renderer = GardenRenderer()
     os.makedirs(os.path.join(out_dir, "images"), exist_ok=True)
-    rows = []
+    bounds = []
     batch = 8
     with tqdm(total=n_views, desc=f"rendering built-in scene '{name}' at {width}x{height}", unit="view",
               disable=not progress) as bar:
@@ -489,16 +497,10 @@ def generate_forward_facing(name: str, out_dir: str, width: int = FF_RESOLUTION,
             paths = [os.path.join(out_dir, "images", f"{start + k:03d}.png") for k in range(len(rgb8))]
             load_parallel(paths, write, threads=2)
             for k in range(len(rgb8)):
-                near, far = np.percentile(depth[k][depth[k] > 0], FF_PERCENTILES)
-                hwf = np.array([[height], [width], [focal]], np.float64)
-                mat = np.concatenate([opengl_to_llff(c2w[start + k:start + k + 1])[0], hwf], axis=1)
-                rows.append(np.concatenate([mat.reshape(-1), [near, far]]))
+                bounds.append(np.percentile(depth[k][depth[k] > 0], FF_PERCENTILES))
             bar.update(len(rgb8))
-    np.save(os.path.join(out_dir, "poses_bounds.npy"), np.stack(rows))
-    marker = {"generator_version": GENERATOR_VERSION, "scene": name, "resolution": width, "counts": [n_views],
-              "seconds": round(time.time() - t0, 2)}
-    with open(os.path.join(out_dir, _MARKER), "w", encoding="utf-8") as f:
-        json.dump(marker, f)
+    np.save(os.path.join(out_dir, "poses_bounds.npy"), np.concatenate([poses, np.stack(bounds)], axis=1))
+    _write_marker(out_dir, name, width, (n_views,), t0)
 
 
 def load_builtin(
