@@ -4,7 +4,12 @@ import sys
 # tests import helpers (tiny_scene) from this folder
 sys.path.insert(0, os.path.dirname(__file__))
 
-import pytest
+# torch's OpenMP workers: the command line's short spin (warpnerf/openmp_wait.py), before torch loads
+from warpnerf.openmp_wait import set_wait_defaults  # noqa: E402  (imports nothing heavy)
+
+set_wait_defaults()
+
+import pytest  # noqa: E402
 
 # Keep compiled Warp kernels between test runs unless the caller chose a cache.
 os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(__file__), "..", ".warp_cache"))

@@ -130,7 +130,7 @@ seen = []
 class Probe(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         if name == "torch" and not seen:
-            seen.append(os.environ.get("OMP_WAIT_POLICY"))
+            seen.append([os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME")])
         return None
 sys.meta_path.insert(0, Probe())
 from warpnerf import cli
@@ -140,15 +140,16 @@ print(seen[0])
 """
 
 
-@pytest.mark.parametrize("user_value", [None, "ACTIVE"])
-def test_cli_sets_passive_openmp_wait_before_torch_loads(user_value):
-    """libgomp reads OMP_WAIT_POLICY once, when torch loads: the command line must set it before the
-    first torch import (the config registry imports torch while the parser is built), and keep a
-    value the user set."""
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if user_value:
-        env["OMP_WAIT_POLICY"] = user_value
+@pytest.mark.parametrize("user", [{}, {"OMP_WAIT_POLICY": "PASSIVE"}, {"GOMP_SPINCOUNT": "0"}])
+def test_cli_sets_a_short_openmp_spin_before_torch_loads(user):
+    """The OpenMP runtime reads its wait settings once, when torch loads: the command line must set
+    them before the first torch import (the config registry imports torch while the parser is
+    built), and leave every wait setting alone when the user made one."""
+    keys = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME")
+    env = {k: v for k, v in os.environ.items() if k not in keys}
+    env.update(user)
     proc = subprocess.run([sys.executable, "-c", WAIT_POLICY_PROBE], capture_output=True, text=True, env=env,
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip().splitlines()[-1] == (user_value or "PASSIVE")
+    expected = [user.get(k) for k in keys] if user else [None, "10000", "0"]
+    assert proc.stdout.strip().splitlines()[-1] == str(expected)

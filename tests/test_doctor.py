@@ -35,10 +35,13 @@ def test_clean_cpu_machine_has_no_problem():
     assert doctor.problems(_info()) == []
 
 
-def test_spinning_openmp_workers_are_named():
+def test_openmp_wait_policies_slower_than_the_short_spin_are_named():
     (line,) = doctor.problems(_info(omp_wait_policy="active"))
-    assert line.startswith("OMP_WAIT_POLICY=ACTIVE") and "PASSIVE" in line
-    assert doctor.problems(_info(omp_wait_policy="PASSIVE")) == []
+    assert line.startswith("OMP_WAIT_POLICY=ACTIVE") and "short spin" in line
+    (line,) = doctor.problems(_info(omp_wait_policy="PASSIVE"))
+    assert line.startswith("OMP_WAIT_POLICY=PASSIVE") and "GOMP_SPINCOUNT" in line
+    assert doctor.problems(_info(gomp_spincount="10000")) == []
+    assert doctor._openmp_wait(_info(gomp_spincount="10000")).startswith("spin 10000")
 
 
 def test_cuda_torch_without_a_driver_is_named():

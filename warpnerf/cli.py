@@ -11,12 +11,11 @@ import json
 import os
 import sys
 
-# torch's OpenMP workers busy-wait after each parallel region by default (libgomp's spin before
-# sleeping), on the very cores Warp's launch threads need next: on 2 cores a training step is
-# ~20 % faster with passive waiting (README, "Speed"). libgomp reads the variable once, when torch
-# loads, so it is set before anything imports torch (the config registry below does); a value the
-# user set wins. Results are unchanged: only how idle threads wait.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# torch's OpenMP wait settings, before anything imports torch (the config registry below does): a
+# short spin instead of libgomp's default busy wait or passive wake-ups (warpnerf/openmp_wait.py)
+from .openmp_wait import set_wait_defaults
+
+set_wait_defaults()
 
 from .cli_config import add_config_flags
 from .config import MODELS

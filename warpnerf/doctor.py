@@ -67,7 +67,8 @@ def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None)
         "cpu_cores": os.cpu_count() or 1,
         "threads": num_threads(),
         "threads_env": os.environ.get("WARPNERF_THREADS"),
-        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # the command line sets PASSIVE unless given
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # the command line leaves it unset unless given
+        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),  # the command line sets a short spin (cli.py)
         "kernel_cache": wp.config.kernel_cache_dir,
         "aot_cache": registry.aot_cache_dir(),
     }
@@ -122,6 +123,14 @@ def _in_kernel_cache(wp, km, arch: int | None) -> bool:
     return False
 
 
+def _openmp_wait(info: dict) -> str:
+    if info.get("omp_wait_policy"):
+        return f"OMP_WAIT_POLICY={info['omp_wait_policy']}"
+    if info.get("gomp_spincount"):
+        return f"spin {info['gomp_spincount']} (GOMP_SPINCOUNT), then sleep"
+    return "default (idle workers spin ~ms)"
+
+
 def problems(info: dict) -> list[str]:
     """One line per known misconfiguration, most serious first."""
     out = []
@@ -145,9 +154,13 @@ def problems(info: dict) -> list[str]:
         out.append(f"mismatched CUDA versions: torch is built for CUDA {torch_cuda}, Warp for CUDA "
                    f"{_v(info['warp_toolkit'])}; both work while the driver supports the newer one, but prefer "
                    "matching majors")
-    if str(info.get("omp_wait_policy") or "").strip().lower() == "active" and not warp_gpus:
+    policy = str(info.get("omp_wait_policy") or "").strip().lower()
+    if policy == "active" and not warp_gpus:
         out.append("OMP_WAIT_POLICY=ACTIVE: torch's idle OpenMP workers spin on the cores Warp's launch threads "
-                   "need (training steps ~20 % slower on 2 cores); unset it and the command line sets PASSIVE")
+                   "need (training steps ~20 % slower on 2 cores); unset it and the command line sets a short spin")
+    elif policy == "passive" and not warp_gpus:
+        out.append("OMP_WAIT_POLICY=PASSIVE: every small torch op pays a thread wake-up (training steps ~20 % "
+                   "slower on 2 cores); unset it and the command line sets a short spin (GOMP_SPINCOUNT)")
     if info["torch_cuda_available"] and not warp_gpus:
         out.append("torch sees a GPU but Warp does not: the kernels would run on the CPU; check the Warp install")
     for name, n in info["device_compiled"].items():
@@ -190,7 +203,7 @@ def format_report(info: dict) -> str:
     threads_src = "WARPNERF_THREADS" if info["threads_env"] else "min(2, cores)"
     lines.append(f"cpu       {info['cpu_cores']} cores, {info['threads']} thread(s) for Warp launches ({threads_src}); "
                  f"kernels compiled {info['cpu_compiled']}/{info['kernel_modules']} modules; "
-                 f"OpenMP wait {info['omp_wait_policy'] or 'default (idle workers spin a while)'}")
+                 f"OpenMP wait {_openmp_wait(info)}")
     lines.append(f"kernels   {info['kernels']} kernels in {info['kernel_modules']} modules; cache {info['kernel_cache']}")
     if info["aot_archs"]:
         done = ", ".join(f"sm_{a} {n}/{info['kernel_modules']}" for a, n in info["aot_compiled"].items())
