@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from warpnerf import bench
+from warpnerf import bench, openmp_wait
 
 
 def _recording_median(monkeypatch):
@@ -49,6 +49,9 @@ def test_encoding_bench_honours_repeats_for_both_arms(monkeypatch):
     # above 1 where the grid's caches help): a measured ratio, so only its sign is asserted
     assert roof["encoding_fwd_fraction"] > 0 and math.isfinite(roof["encoding_fwd_fraction"])
     assert "roofline: machine" in bench.format_encoding(res)
+    # the figures move by ~25 % with torch's OpenMP wait setting: recorded beside them
+    assert res["openmp_wait"] == openmp_wait.describe() and f"OpenMP wait {res['openmp_wait']}" in \
+        bench.format_encoding(res)
 
 
 def test_encoding_bench_without_roofline(monkeypatch):
@@ -97,6 +100,20 @@ def test_format_step_prints_the_roofline_line():
     assert "roofline: GEMM 80.0 GFLOP/s, MLPs fwd+bwd reach 30.0 GFLOP/s (38%), 40% of the warp step" in \
         bench.format_step(res)
     assert "roofline" not in bench.format_step({**res, "roofline": None})
+    assert "OpenMP wait GOMP_SPINCOUNT=10000" in bench.format_step({**res, "openmp_wait": "GOMP_SPINCOUNT=10000"})
+
+
+def test_openmp_wait_defaults_and_their_description(monkeypatch):
+    for k in openmp_wait.WAIT_SETTINGS:  # set first, so that monkeypatch restores each afterwards
+        monkeypatch.setenv(k, "x")
+        monkeypatch.delenv(k)
+    assert openmp_wait.describe() == "default"
+    assert openmp_wait.set_wait_defaults() is True
+    assert openmp_wait.describe() == "GOMP_SPINCOUNT=10000 KMP_BLOCKTIME=0"
+    monkeypatch.delenv("KMP_BLOCKTIME")
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")  # any wait setting of the user's: nothing changes
+    assert openmp_wait.set_wait_defaults() is False
+    assert openmp_wait.describe() == "OMP_WAIT_POLICY=PASSIVE GOMP_SPINCOUNT=10000"
 
 
 def test_twin_swap_replaces_the_ops_the_renderer_calls():

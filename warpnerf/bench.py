@@ -19,6 +19,7 @@ from typing import Callable
 import torch
 
 from . import device as devmod
+from . import openmp_wait
 
 
 def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -283,6 +284,7 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
         "log2_table_size": log2_table_size if model == "ngp" else None,
         "device": wp_device,
         "threads": devmod.num_threads() if wp_device == "cpu" else None,
+        "openmp_wait": openmp_wait.describe(),
         "repeats": repeats,
         "torch_repeats": torch_repeats,
         "torch_threads": torch.get_num_threads(),
@@ -299,7 +301,8 @@ def format_encoding(res: dict) -> str:
     grid = (f"hash-grid encoding: N={res['n']}, L={res['levels']}, F={res['features']}, T=2^{res['log2_table_size']}"
             if res.get("model", "ngp") == "ngp" else f"Mtrf (CP lines) encoding: N={res['n']}, L={res['levels']}, R={res['features']}")
     lines = [
-        f"{grid}, device={res['device']}, threads={res['threads']}, torch threads={res['torch_threads']}",
+        f"{grid}, device={res['device']}, threads={res['threads']}, torch threads={res['torch_threads']}, "
+        f"OpenMP wait {res.get('openmp_wait', '?')}",
         f"{'case':<13}{'warp fwd':>14}{'warp fwd+bwd':>15}{'torch fwd':>14}{'torch fwd+bwd':>15}{'ratio fwd':>11}{'ratio f+b':>11}",
     ]
     for name, r in res["cases"].items():
@@ -414,6 +417,7 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
         "scene_source": scene.source,
         "device": wp_device,
         "threads": devmod.num_threads(),
+        "openmp_wait": openmp_wait.describe(),
         "rays_per_step": rays,
         "repeats": repeats,
         "torch_repeats": torch_repeats,
@@ -430,7 +434,8 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
 
 def format_step(res: dict) -> str:
     text = (f"training step on {res['scene']} ({res['scene_source']}), {res['rays_per_step']} rays, "
-            f"{res['samples_per_step']:.0f} samples/step, device={res['device']}, threads={res['threads']}\n"
+            f"{res['samples_per_step']:.0f} samples/step, device={res['device']}, threads={res['threads']}, "
+            f"OpenMP wait {res.get('openmp_wait', '?')}\n"
             f"warp : {res['warp_iters_s']:.2f} it/s, {res['warp_samples_s'] / 1e6:.2f} M samples/s\n"
             f"torch: {res['torch_iters_s']:.3f} it/s, {res['torch_samples_s'] / 1e6:.3f} M samples/s\n"
             f"ratio (torch time / warp time): {res['ratio']:.1f}x")
@@ -481,6 +486,7 @@ def bench_render(run_dir: str, views: int = 5, device: str = "auto", every_sampl
         "scene": trainer.scene.name,
         "device": str(dev),
         "threads": devmod.num_threads(),
+        "openmp_wait": openmp_wait.describe(),
         "width": test.width,
         "height": test.height,
         "views": picks,
