@@ -15,6 +15,8 @@ import argparse
 import os
 import platform
 
+from . import openmp_wait
+
 
 def add_parser(sub) -> None:
     """Register ``doctor`` on the ``warpnerf`` sub-parser set ``sub``."""
@@ -68,7 +70,7 @@ def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None)
         "threads": num_threads(),
         "threads_env": os.environ.get("WARPNERF_THREADS"),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # the command line leaves it unset unless given
-        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),  # the command line sets a short spin (cli.py)
+        "openmp_wait": openmp_wait.describe(),  # the command line sets a short spin unless given
         "kernel_cache": wp.config.kernel_cache_dir,
         "aot_cache": registry.aot_cache_dir(),
     }
@@ -121,14 +123,6 @@ def _in_kernel_cache(wp, km, arch: int | None) -> bool:
             if arch is not None and f.startswith(f"{ident}.sm{arch}") and f.endswith((".ptx", ".cubin")):
                 return True
     return False
-
-
-def _openmp_wait(info: dict) -> str:
-    if info.get("omp_wait_policy"):
-        return f"OMP_WAIT_POLICY={info['omp_wait_policy']}"
-    if info.get("gomp_spincount"):
-        return f"spin {info['gomp_spincount']} (GOMP_SPINCOUNT), then sleep"
-    return "default (idle workers spin ~ms)"
 
 
 def problems(info: dict) -> list[str]:
@@ -203,7 +197,7 @@ def format_report(info: dict) -> str:
     threads_src = "WARPNERF_THREADS" if info["threads_env"] else "min(2, cores)"
     lines.append(f"cpu       {info['cpu_cores']} cores, {info['threads']} thread(s) for Warp launches ({threads_src}); "
                  f"kernels compiled {info['cpu_compiled']}/{info['kernel_modules']} modules; "
-                 f"OpenMP wait {_openmp_wait(info)}")
+                 f"OpenMP wait {info.get('openmp_wait', 'default')}")
     lines.append(f"kernels   {info['kernels']} kernels in {info['kernel_modules']} modules; cache {info['kernel_cache']}")
     if info["aot_archs"]:
         done = ", ".join(f"sm_{a} {n}/{info['kernel_modules']}" for a, n in info["aot_compiled"].items())

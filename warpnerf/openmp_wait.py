@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import os
 
-# GOMP_SPINCOUNT counts pause-loop iterations (10000: ~0.1 ms here); 1000 measured no better than
-# passive, 3000-10000 alike (chair few-shot, 300 warm steps: 48-56 s against 64-77 s passive)
+# GOMP_SPINCOUNT counts pause-loop iterations (libgomp's default: 300000). Chair few-shot, 300 warm
+# steps: 1000 measured no better than passive (58-62 s vs 64-77 s), 3000 and 10000 alike (48-56 s)
 WAIT_DEFAULTS = {"GOMP_SPINCOUNT": "10000", "KMP_BLOCKTIME": "0"}
 WAIT_SETTINGS = ("OMP_WAIT_POLICY", *WAIT_DEFAULTS)
 
