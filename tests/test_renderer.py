@@ -127,6 +127,35 @@ def test_field_without_autograd_evaluates_in_row_blocks_with_the_same_values():
     assert rows == [4096, 4096, 1808] and torch.equal(out, x + d)
 
 
+def test_density_of_is_the_geometry_density_and_its_gradient():
+    """``GridField.density_of`` (the occupancy grid's and the compaction pass's density) computes
+    only the first output of the density MLP's last layer: the same densities as ``geometry_of``
+    up to float summation order, with and without autograd, and the same gradients."""
+    from warpnerf.encoders import HashGridEncoder
+    from warpnerf.field import GridField
+    from warpnerf.ops.hashgrid import HashGridSpec
+
+    torch.manual_seed(0)
+    spec = HashGridSpec.create(3, 4, 2, 12, 4, 64)
+    field = GridField((-1, -1, -1, 1, 1, 1), HashGridEncoder(spec, init_scale=0.5), density_shift=-0.5)
+    x = torch.rand(9000, 3) * 2 - 1
+    enc = field.encode(x)
+    full = field.geometry_of(enc)[0]
+    only = field.density_of(enc)
+    assert only.shape == (9000,) and float(only.detach().std()) > 0
+    torch.testing.assert_close(only, full, rtol=1e-6, atol=0)
+    with torch.no_grad():  # in row blocks
+        torch.testing.assert_close(field.density(x), full.detach(), rtol=1e-6, atol=0)
+    params = list(field.parameters())
+    g_full = torch.autograd.grad(full.square().sum(), params, retain_graph=True, allow_unused=True)
+    g_only = torch.autograd.grad(only.square().sum(), params, allow_unused=True)
+    for i, (a, b) in enumerate(zip(g_only, g_full)):
+        if b is None or not b.any():  # the colour MLP and the geometry features' rows
+            assert a is None or not a.any(), i
+            continue
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max()), msg=lambda m: f"{i}: {m}")
+
+
 @pytest.mark.parametrize("field_kind", ["grid", "blobs"])
 def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     """Training (``render_rays`` with autograd) evaluates the field on every marched sample without

@@ -167,7 +167,7 @@ class Renderer:
 
     def _active_prefixes(self, o, d, packed: PackedSamples, level_weights):
         """``packed`` cut to the samples compositing can weigh (instant-ngp's compaction), and
-        their grid encoding (``None`` for a field without ``encode``/``geometry_of``).
+        their grid encoding (``None`` for a field without ``encode``/``density_of``).
 
         A first pass without autograd encodes every sample and evaluates its density, and counts,
         per ray, the samples before its transmittance fell below the compositing threshold
@@ -178,11 +178,11 @@ class Renderer:
         One sample past the count stays, in case the differentiable pass's density differs from
         this one in the last bit and the ray stops one sample later.
         """
-        reuse = hasattr(self.field, "geometry_of")
+        reuse = hasattr(self.field, "density_of")
         with torch.no_grad():
             _, x = self._points(o.detach(), d.detach(), packed)
             enc = self.field.encode(x, level_weights) if reuse else None
-            sigma = (self.field.geometry_of(enc) if reuse else self.field.geometry(x, level_weights))[0].float()
+            sigma = (self.field.density_of(enc) if reuse else self.field.geometry(x, level_weights)[0]).float()
             active = active_sample_counts(sigma, packed.t_starts, packed.t_ends, packed.ray_offsets,
                                           packed.ray_counts)
             counts = torch.minimum(active + 1, packed.ray_counts)
