@@ -123,8 +123,12 @@ def test_field_without_autograd_evaluates_in_row_blocks_with_the_same_values():
     assert torch.equal(sigma.detach(), sigma_b) and torch.equal(geo.detach(), geo_b)
     assert torch.equal(rgb.detach(), rgb_b)
     rows = []
-    out = in_row_blocks(lambda a, b: rows.append(a.shape[0]) or a + b, x, d, rows=4096)
+    with torch.no_grad():
+        out = in_row_blocks(lambda a, b: rows.append(a.shape[0]) or a + b, x, d, rows=4096)
     assert rows == [4096, 4096, 1808] and torch.equal(out, x + d)
+    rows.clear()  # with autograd: one call
+    out = in_row_blocks(lambda a, b: rows.append(a.shape[0]) or a + b, x, d, rows=4096)
+    assert rows == [10000] and torch.equal(out, x + d)
 
 
 def test_density_of_is_the_geometry_density_and_its_gradient():

@@ -32,13 +32,14 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
 
 
 def in_row_blocks(fn, *inputs: torch.Tensor, rows: int = 4096) -> torch.Tensor:
-    """``fn(*inputs)`` evaluated on ``rows`` rows at a time, for row-wise ``fn`` without autograd.
+    """``fn(*inputs)`` for row-wise ``fn``: without autograd evaluated on ``rows`` rows at a time,
+    with autograd in one call (blocks would build a graph per block).
 
     A tiny MLP over 2^17 samples writes and re-reads each (N, 64) hidden layer through memory
     (32 MB); on 4096 rows it stays in the core's L2 cache. Measured on 2 cores: the density MLP's
     forward 1.4-1.8x and the color MLP's 1.5-3x faster. Row results are those of one call."""
     n = inputs[0].shape[0]
-    if n <= rows:
+    if n <= rows or torch.is_grad_enabled():
         return fn(*inputs)
     first = fn(*(x[:rows] for x in inputs))
     out = first.new_empty((n,) + first.shape[1:])
@@ -89,7 +90,7 @@ class GridField(nn.Module):
 
     def geometry_of(self, enc: torch.Tensor):
         """Grid encoding (N, out_dim) -> density (N,) per unit length, geometry features (N, geo_features)."""
-        h = self.density_net(enc) if torch.is_grad_enabled() else in_row_blocks(self.density_net, enc)
+        h = in_row_blocks(self.density_net, enc)
         return trunc_exp(h[:, 0] + self.density_shift), h[:, 1:]
 
     def density_of(self, enc: torch.Tensor) -> torch.Tensor:
@@ -102,7 +103,7 @@ class GridField(nn.Module):
         def logit(e):
             return torch.addmm(last.bias[:1], torch.relu(first(e)), last.weight[:1].t())
 
-        h = logit(enc) if torch.is_grad_enabled() else in_row_blocks(logit, enc)
+        h = in_row_blocks(logit, enc)
         return trunc_exp(h[:, 0] + self.density_shift)
 
     def geometry(self, x: torch.Tensor, level_weights=None):
@@ -115,8 +116,6 @@ class GridField(nn.Module):
 
     def color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """Geometry features (N, geo_features) and unit view directions (N, 3) -> rgb (N, 3) in [0, 1]."""
-        if torch.is_grad_enabled():
-            return self._color(geo, dirs)
         return in_row_blocks(self._color, geo, dirs)
 
     def _color(self, geo: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
