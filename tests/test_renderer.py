@@ -160,7 +160,28 @@ def test_density_of_is_the_geometry_density_and_its_gradient():
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max()), msg=lambda m: f"{i}: {m}")
 
 
-@pytest.mark.parametrize("field_kind", ["grid", "blobs"])
+class WithoutGeometryOf(torch.nn.Module):
+    """A grid field that offers ``encode`` and ``density_of`` but not ``geometry_of``: the
+    renderer must not hand it an encoding to continue from."""
+
+    def __init__(self, field):
+        super().__init__()
+        self.inner = field
+
+    def encode(self, x, level_weights=None, known_output=None):
+        return self.inner.encode(x, level_weights, known_output)
+
+    def density_of(self, enc):
+        return self.inner.density_of(enc)
+
+    def geometry(self, x, level_weights=None):
+        return self.inner.geometry(x, level_weights)
+
+    def color(self, geo, dirs):
+        return self.inner.color(geo, dirs)
+
+
+@pytest.mark.parametrize("field_kind", ["grid", "grid_without_geometry_of", "blobs"])
 def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     """Training (``render_rays`` with autograd) evaluates the field on every marched sample without
     autograd, then differentiates only the samples before each ray turned opaque, reusing their
@@ -172,12 +193,14 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     from warpnerf.ops.hashgrid import HashGridSpec
 
     r, c2w = renderer_for("euclidean")
-    if field_kind == "grid":
+    if field_kind.startswith("grid"):
         torch.manual_seed(0)
         spec = HashGridSpec.create(3, 6, 2, 12, 4, 64)
         r.field = GridField((-1.5, -1.5, -1.5, 1.5, 1.5, 1.5), HashGridEncoder(spec, init_scale=0.5))
         with torch.no_grad():
             r.field.density_net[2].bias[0] = 2.0  # dense enough that rays turn opaque inside the box
+        if field_kind == "grid_without_geometry_of":
+            r.field = WithoutGeometryOf(r.field)
     g = torch.Generator().manual_seed(1)
     o = (c2w[:, 3] + 0.05 * torch.randn(400, 3, generator=g)).requires_grad_(True)
     d = torch.nn.functional.normalize(torch.randn(400, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -1.0]), dim=1)
@@ -187,7 +210,7 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     results = []
     for compact in (False, True):
         r.compact_training = compact
-        out = r.render_rays(o, d, weights if field_kind == "grid" else None, jitter, distortion=True)
+        out = r.render_rays(o, d, weights if field_kind.startswith("grid") else None, jitter, distortion=True)
         loss = (out.rgb * torch.linspace(0.5, 1.5, 3)).square().sum() + out.depth.sum() * 1e-2 + out.distortion.sum()
         results.append((out, torch.autograd.grad(loss, params, allow_unused=True)))
     (full, grads_full), (cut, grads_cut) = results

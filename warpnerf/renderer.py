@@ -167,7 +167,7 @@ class Renderer:
 
     def _active_prefixes(self, o, d, packed: PackedSamples, level_weights):
         """``packed`` cut to the samples compositing can weigh (instant-ngp's compaction), and
-        their grid encoding (``None`` for a field without ``encode``/``density_of``).
+        their grid encoding (``None`` for a field without ``encode``/``density_of``/``geometry_of``).
 
         A first pass without autograd encodes every sample and evaluates its density, and counts,
         per ray, the samples before its transmittance fell below the compositing threshold
@@ -178,7 +178,8 @@ class Renderer:
         One sample past the count stays, in case the differentiable pass's density differs from
         this one in the last bit and the ray stops one sample later.
         """
-        reuse = hasattr(self.field, "density_of")
+        # the encoding is reused only by a field that can continue from it (render_rays: geometry_of)
+        reuse = all(hasattr(self.field, m) for m in ("encode", "density_of", "geometry_of"))
         with torch.no_grad():
             _, x = self._points(o.detach(), d.detach(), packed)
             enc = self.field.encode(x, level_weights) if reuse else None
