@@ -52,13 +52,26 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
                 g["lr"] = exp_decay(trainer.cfg.pose_lr, trainer.cfg.pose_lr_final, i / max(n_steps - 1, 1))
             py = torch.randint(0, views.height, idx.shape, generator=gen, device=trainer.device)
             px = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
-            o, d = pixel_rays(corr(c2w[idx], idx), px.float() + 0.5, py.float() + 0.5, views.focal, views.cx,
-                              views.cy)
-            out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
-            # sum of per-view means: each view's gradient is what refining it alone would see
-            loss = torch.nn.functional.mse_loss(out.rgb, images[idx, py, px], reduction="sum") / (3 * rays_per_step)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            # the renderer takes at most sample_budget samples per call and returns the rays past it
+            # as background: render in as many calls as the budget needs, so every view's rays count
+            # (one call for 25 lego views x 1024 rays left the last views' rays unrendered, and those
+            # poses unrefined or drifting)
+            first = 0
+            while first < idx.shape[0]:
+                k = idx[first:]
+                o, d = pixel_rays(corr(c2w[k], k), px[first:].float() + 0.5, py[first:].float() + 0.5, views.focal,
+                                  views.cx, views.cy)
+                out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
+                n = out.n_rays
+                if n <= 0:
+                    raise RuntimeError("pose refinement: a single ray needs more samples than sample_budget")
+                # sum of per-view means: each view's gradient is what refining it alone would see
+                loss = torch.nn.functional.mse_loss(out.rgb[:n], images[k[:n], py[first:first + n],
+                                                                        px[first:first + n]],
+                                                    reduction="sum") / (3 * rays_per_step)
+                loss.backward()
+                first += n
             opt.step()
     finally:
         for p in trainer.field.parameters():
