@@ -218,6 +218,8 @@ class PoseTask(Task):
             "trans_err_x100_per_view": ev["trans_err_x100_per_view"],
             "centre_err_x100": ev["centre_err_x100"],
             "centre_err_x100_per_view": ev["centre_err_x100_per_view"],
+            "rot_offset_cam_deg": ev["rot_offset_cam_deg"],
+            "trans_offset_cam_x100": ev["trans_offset_cam_x100"],
             "initial_rot_err_deg": self.initial["rot_err_deg"],
             "initial_trans_err_x100": self.initial["trans_err_x100"],
             "initial_centre_err_x100": self.initial["centre_err_x100"],
