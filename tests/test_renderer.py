@@ -78,9 +78,17 @@ def test_rounds_render_the_image_of_every_sample(kind):
     # measured 0.71 / 0.68 / 0.79 of the samples (rays behind the dense ball stop)
     assert evaluated < 0.85 * marched, (evaluated, marched)
     assert (rounds["samples"], every["samples"]) == (evaluated, marched)  # what render_image reports
+    # a ray stops once its transmittance is below stop_transmittance, so the light it leaves out is
+    # below that too (measured up to 7.6e-5 in rgb on one CPU, < 1e-5 on others). Depth is divided
+    # by opacity: on nearly transparent pixels a last-bit difference moves it by ~1 (measured 1.57
+    # at opacity ~1e-7), so it is compared where the pixel shows something
+    light_tol = 1e-4 + 1e-5
+    seen = every["opacity"] > 0.01
+    depth_tol = 1e-3 * float(every["depth"].abs().max())
     for other in (rounds, tiny):
-        for key, tol in (("rgb", 1e-5), ("opacity", 1e-5), ("depth", 1e-3 * float(every["depth"].abs().max()))):
-            assert float((other[key] - every[key]).abs().max()) < tol, (kind, key)
+        assert float((other["rgb"] - every["rgb"]).abs().max()) < light_tol, kind
+        assert float((other["opacity"] - every["opacity"]).abs().max()) < light_tol, kind
+        assert float((other["depth"] - every["depth"])[seen].abs().max()) < depth_tol, kind
     assert not math.isnan(float(rounds["depth"].sum()))
 
 
