@@ -59,17 +59,13 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
             # poses unrefined or drifting)
             first = 0
             while first < idx.shape[0]:
-                k = idx[first:]
-                o, d = pixel_rays(corr(c2w[k], k), px[first:].float() + 0.5, py[first:].float() + 0.5, views.focal,
-                                  views.cx, views.cy)
+                k, u, v = idx[first:], px[first:], py[first:]
+                o, d = pixel_rays(corr(c2w[k], k), u.float() + 0.5, v.float() + 0.5, views.focal, views.cx, views.cy)
                 out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
-                n = out.n_rays
-                if n <= 0:
-                    raise RuntimeError("pose refinement: a single ray needs more samples than sample_budget")
+                n = max(out.n_rays, 1)  # the budget holds one ray's samples (render_image does the same)
                 # sum of per-view means: each view's gradient is what refining it alone would see
-                loss = torch.nn.functional.mse_loss(out.rgb[:n], images[k[:n], py[first:first + n],
-                                                                        px[first:first + n]],
-                                                    reduction="sum") / (3 * rays_per_step)
+                target = images[k[:n], v[:n], u[:n]]
+                loss = torch.nn.functional.mse_loss(out.rgb[:n], target, reduction="sum") / (3 * rays_per_step)
                 loss.backward()
                 first += n
             opt.step()
