@@ -124,6 +124,48 @@ def test_refine_poses_renders_every_view_within_the_sample_budget(trained_full):
     assert torch.allclose(split, whole, atol=2e-5), (split - whole).abs().max()
 
 
+def test_flush_tiny_moments_zeroes_only_what_cannot_move_a_parameter():
+    from warpnerf.trainer import MOMENT_FLUSH_BELOW, flush_tiny_moments
+
+    p = torch.nn.Parameter(torch.zeros(6))
+    opt = torch.optim.Adam([p], lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
+    p.grad = torch.ones(6)
+    opt.step()
+    st = opt.state[p]
+    m = torch.tensor([1e-39, -1e-31, 1e-29, -1e-5, 0.0, 2e-30])  # 1e-39: a denormal
+    v = torch.tensor([1e-39, 1e-37, 1e-35, 1e-10, 0.0, 1e-20])
+    st["exp_avg"].copy_(m)
+    st["exp_avg_sq"].copy_(v)
+    flush_tiny_moments(opt)
+    assert torch.equal(st["exp_avg"], torch.where(m.abs() < MOMENT_FLUSH_BELOW["exp_avg"], 0.0, m))
+    assert torch.equal(st["exp_avg_sq"], torch.where(v < MOMENT_FLUSH_BELOW["exp_avg_sq"], 0.0, v))
+    assert (st["exp_avg"] != 0).tolist() == [False, False, True, True, False, True]
+    assert (st["exp_avg_sq"] != 0).tolist() == [False, False, True, True, False, True]
+
+
+def test_untouched_rows_keep_no_denormal_moments():
+    """A field trained past MOMENT_FLUSH_EVERY steps holds no denormal Adam moment: rows no sample
+    reaches (most of a hash table's fine levels on a small scene) would otherwise decay into
+    float32's denormal range, where x86 arithmetic is ~10x slower."""
+    from warpnerf.trainer import MOMENT_FLUSH_EVERY
+
+    t = make_trainer(iters=MOMENT_FLUSH_EVERY)
+    for s in range(MOMENT_FLUSH_EVERY - 1):
+        t.train_step(s)
+    tiny = torch.finfo(torch.float32).tiny
+    table = t.optimizer.param_groups[0]["params"][0]
+    st = t.optimizer.state[table]
+    # what hundreds of steps without a sample leave in a row: denormal moments (100 steps of a tiny
+    # scene are too few to get there on their own)
+    st["exp_avg"].fill_(1e-39)
+    st["exp_avg_sq"].fill_(1e-39)
+    t.train_step(MOMENT_FLUSH_EVERY - 1)  # this step ends with a flush
+    for key in ("exp_avg", "exp_avg_sq"):
+        m = st[key]
+        assert not bool(((m != 0) & (m.abs() < tiny)).any()), key
+    assert bool((st["exp_avg"] != 0).any())  # the rows this step's samples reached keep their moments
+
+
 def test_training_is_deterministic_for_a_seed():
     losses = []
     for _ in range(2):
