@@ -101,7 +101,7 @@ def test_refine_poses_renders_every_view_within_the_sample_budget(trained_full):
     """The refinement batch (views x rays_per_step rays) may need more samples than the renderer's
     budget; the rays past it must still be rendered, not left as background. Before the fix, one
     render call per step left the last of 25 lego test views unrefined and drove the one before
-    it 0.3 dB -> 5 dB below its start."""
+    it from 31.1 dB (unrefined) to 26.6 dB."""
     from warpnerf.cameras import rotation_about_axis
 
     trainer = trained_full

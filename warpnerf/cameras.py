@@ -394,7 +394,8 @@ def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:
       rot_offset_cam_deg, trans_offset_cam_x100: the residual every camera shares, in its own frame:
           the mean over views of the rotation vector of R_gt^T R_aligned (degrees) and of
           t_w2c_aligned - t_w2c_gt (x100), 3 floats each (x, y, z camera axes). A systematic error
-          shows here at the size of the per-view error; scatter averages out (~ error / sqrt(N));
+          shows here at the size of the per-view error; zero-mean scatter mostly averages out (100
+          ring cameras with se(3) noise: 0.11 of the rotation error, 0.26 of the translation error);
       sim3: (s, R (3, 3), t (3,)) mapping estimate -> ground truth (see
           :func:`map_gt_poses_to_estimate_frame` for test views);
       c2w_aligned: (N, 3, 4) aligned estimated poses (detached).
