@@ -572,6 +572,24 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
     assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)
 
 
+def test_pose_on_a_forward_facing_scene_prints_a_caveat(capsys):
+    """Pose refinement drifted into a shared ~6 deg pitch on fern (README, "Open work"): the
+    run says so in one line before training; other scenes and tasks get no caveat."""
+    from types import SimpleNamespace
+
+    from warpnerf.config import TrainConfig
+    from warpnerf.data.rayspace import RaySpace
+    from warpnerf.tasks import FullTask, PoseTask
+
+    ndc = SimpleNamespace(ray_space=RaySpace.ndc(100.0, 64, 48))
+    world = SimpleNamespace(ray_space=RaySpace())
+    pose = PoseTask(TrainConfig(task="pose"))
+    line = pose.caveat(ndc)
+    assert line.startswith("warning: pose refinement is not validated on forward-facing") and "\n" not in line
+    assert pose.caveat(world) is None
+    assert FullTask(TrainConfig(task="full")).caveat(ndc) is None
+
+
 def test_a_checkpoint_from_another_scene_box_is_refused_in_one_line():
     """A run trained with another box (another scene, or an LLFF run from before the NDC box held
     every training ray) would be rendered through the wrong occupancy cells: loading says so."""

@@ -230,6 +230,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}"
           + (f"; resumed at step {trainer.step}" if mode == "resume" else ""))
+    caveat = task.caveat(scene)
+    if caveat:
+        print(caveat)
 
     stop = []
 
