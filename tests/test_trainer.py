@@ -572,9 +572,10 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
     assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)
 
 
-def test_pose_on_a_forward_facing_scene_prints_a_caveat(capsys):
+def test_pose_on_a_forward_facing_scene_has_a_one_line_caveat():
     """On fern, centre alignment turned the cameras by 6 deg while the poses improved (README, "Open
-    work"): the run says so in one line before training; other scenes and tasks get no caveat."""
+    work"): the pose task names that in one line, which the run prints before training; other scenes
+    and tasks get no caveat."""
     from types import SimpleNamespace
 
     from warpnerf.config import TrainConfig

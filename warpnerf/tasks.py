@@ -39,7 +39,7 @@ class Task:
         """Create task state (e.g. pose parameters) once the trainer exists."""
 
     def caveat(self, scene: Scene) -> Optional[str]:
-        """One line the run prints before training when this task is known to fail on ``scene``, else None."""
+        """One line the run prints before training when this task has a known problem on ``scene``, else None."""
         return None
 
     def camera_poses(self, trainer: "Trainer", idx: torch.Tensor) -> torch.Tensor:
