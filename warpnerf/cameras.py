@@ -355,14 +355,14 @@ def map_gt_poses_to_estimate_frame(c2w_gt: torch.Tensor, sim3) -> torch.Tensor:
     return apply_sim3_to_poses(c2w_gt, *invert_sim3(*sim3))
 
 
-def with_shared_camera_rotation(c2w: torch.Tensor, c2w_aligned: torch.Tensor, c2w_gt: torch.Tensor) -> torch.Tensor:
+def with_shared_camera_rotation(c2w: torch.Tensor, rot_offset_cam_deg) -> torch.Tensor:
     """``c2w`` (N, 3, 4) turned about their own centres by the rotation every aligned training camera
-    shares: R_gt -> R_gt exp(mean_i log(R_gt_i^T R_aligned_i)) (the camera-frame mean that
-    :func:`evaluate_poses` reports as ``rot_offset_cam_deg``). Where the centres barely span 3-D
+    shares: R -> R exp(w), w = ``rot_offset_cam_deg`` as :func:`evaluate_poses` reports it (the
+    camera-frame mean of log(R_gt^T R_aligned), degrees). Where the centres barely span 3-D
     (forward-facing captures) the centre alignment's own rotation is ill-determined (fern: 6 deg
     while the poses improved); that error shows up as this shared rotation, so applying it to test
     views undoes it."""
-    w = so3_log(c2w_gt[:, :, :3].transpose(1, 2).double() @ c2w_aligned[:, :, :3].double()).mean(0)
+    w = torch.deg2rad(torch.as_tensor(rot_offset_cam_deg, dtype=torch.float64, device=c2w.device))
     out = c2w.clone()
     out[:, :, :3] = (c2w[:, :, :3].double() @ so3_exp(w)).to(c2w.dtype)
     return out

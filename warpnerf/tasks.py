@@ -219,7 +219,7 @@ class PoseTask(Task):
             # the centres barely span 3-D, so the alignment's rotation is ill-determined (fern: 6 deg while
             # the poses improved): turn the test views by the rotation the aligned training cameras share,
             # which absorbs it (fern: test PSNR 12.83 -> 21.40 dB; README, "Open work")
-            test_c2w = with_shared_camera_rotation(test_c2w, ev["c2w_aligned"], self.gt_c2w)
+            test_c2w = with_shared_camera_rotation(test_c2w, ev["rot_offset_cam_deg"])
         mapped = map_gt_poses_to_estimate_frame(test_c2w, ev["sim3"]).float()
         if self.cfg.pose_refine_steps <= 0:
             return mapped
