@@ -196,7 +196,7 @@ def test_pose_gradient_path_has_no_cpu_index_backward():
     from warpnerf.renderer import pixel_rays
 
     t = make_trainer("pose", iters=10)
-    idx, u, v, _, _ = t.sample_pixels(t.n_rays)
+    idx, u, v, *_ = t.sample_pixels(t.n_rays)
     o, d = pixel_rays(t.task.camera_poses(t, idx), u, v, t.views.focal, t.views.cx, t.views.cy)
     out = t.renderer.render_rays(o.contiguous(), d.contiguous(), t.level_weights(0),
                                  torch.rand(o.shape[0], generator=t.gen))
@@ -625,6 +625,30 @@ def test_forward_facing_test_views_turn_with_the_training_cameras():
             assert (mapped[:, :, :3] - test[:, :, :3]).abs().max() > 0.05
         angle = math.degrees(float(torch.tensor([0.1, -0.02, 0.03]).norm()))
         assert task.final["rot_err_deg_unaligned"] == pytest.approx(angle, abs=1e-3)
+
+
+def test_pose_progress_shows_the_unaligned_rotation_on_forward_facing_scenes():
+    """The progress bar shows rot_err_deg_unaligned ("rot_ua") on NDC scenes, where the aligned figure
+    is not the poses' (the caveat), and BARF's aligned "rot" elsewhere; the history keeps both."""
+    from types import SimpleNamespace
+
+    from warpnerf.cameras import look_at
+    from warpnerf.config import TrainConfig
+    from warpnerf.data.rayspace import RaySpace
+    from warpnerf.tasks import PoseTask
+
+    centres = torch.rand(6, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) + 3.0
+    gt = look_at(centres, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)).float()
+    for ray_space, key, other in ((RaySpace.ndc(100.0, 64, 48), "rot_ua", "rot"), (RaySpace(), "rot", "rot_ua")):
+        trainer = SimpleNamespace(scene=SimpleNamespace(kind="llff", ray_space=ray_space), train_c2w=gt, device="cpu")
+        task = PoseTask(TrainConfig(task="pose", log_every=10))
+        task.setup(trainer)
+        shown = task.after_step(trainer, 0)
+        assert key in shown and other not in shown and "trans" in shown
+        want = task.history["rot_err_deg_unaligned" if key == "rot_ua" else "rot_err_deg"][-1]
+        assert float(shown[key]) == pytest.approx(want, abs=5e-4) and want > 0
+        assert len(task.history["rot_err_deg_unaligned"]) == len(task.history["step"]) == 2
+        assert task.after_step(trainer, 1) == {}  # between progress refreshes
 
 
 def test_a_checkpoint_from_another_scene_box_is_refused_in_one_line():

@@ -100,6 +100,7 @@ class TrainConfig:
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on the ray space's t (0 = off); concentrates each ray's weight, removing haze
     random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
+    error_sampling: float = 0.0  # share of training rays drawn where each image's recent error is highest (instant-ngp's error map), importance-weighted; 0 = uniform
     # --- G²fR (paper eq. 15) ---
     g2fr: bool = False  # mask grid levels coarse to fine
     g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on

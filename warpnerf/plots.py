@@ -112,6 +112,7 @@ def plot_pose_error_curve(
     label_suffix: str = "",
     title: str = "",
     log_y: bool = True,
+    rot_label: str | None = None,
 ) -> str:
     """Pose error against training iteration: rotation (degrees) and translation (x100) panels.
 
@@ -119,7 +120,8 @@ def plot_pose_error_curve(
     by ``label_suffix``, or several overlaid runs (e.g. G²fR on / off):
     ``plot_pose_error_curve(path, {"G²fR": (iters, rot, trans), "no mask": (...)})``.
     Sequences are 1-D (same length within a run). Log y axis by default, since the errors fall
-    by orders of magnitude. Returns the path.
+    by orders of magnitude. ``rot_label``: the rotation panel's axis label (e.g. for the error
+    without alignment). Returns the path.
     """
     if isinstance(iters, Mapping):
         runs = {k: v for k, v in iters.items()}
@@ -136,7 +138,7 @@ def plot_pose_error_curve(
         colour = _RUN_COLOURS[i % len(_RUN_COLOURS)]
         ax_r.plot(_np(it), _np(rot), color=colour, label=label)
         ax_t.plot(_np(it), _np(trans), color=colour, label=label)
-    for ax, name in ((ax_r, "rotation error (degrees)"), (ax_t, "translation error (BARF, w2c, x100)")):
+    for ax, name in ((ax_r, rot_label or "rotation error (degrees)"), (ax_t, "translation error (BARF, w2c, x100)")):
         ax.set_xlabel("iteration")
         ax.set_ylabel(name)
         if log_y:

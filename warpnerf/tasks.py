@@ -127,7 +127,8 @@ class PoseTask(Task):
     def __init__(self, cfg: TrainConfig):
         super().__init__(cfg)
         # trans_err_x100 is BARF's (aligned w2c translations), centre_err_x100 the camera-centre distance
-        self.history: dict[str, list] = {"step": [], "rot_err_deg": [], "trans_err_x100": [], "centre_err_x100": []}
+        self.history: dict[str, list] = {"step": [], "rot_err_deg": [], "trans_err_x100": [], "centre_err_x100": [],
+                                         "rot_err_deg_unaligned": []}
         self.initial: dict = {}
         self.final: dict = {}
 
@@ -198,12 +199,15 @@ class PoseTask(Task):
         self.history["rot_err_deg"].append(ev["rot_err_deg"])
         self.history["trans_err_x100"].append(ev["trans_err_x100"])
         self.history["centre_err_x100"].append(ev["centre_err_x100"])
+        self.history.setdefault("rot_err_deg_unaligned", []).append(ev["rot_err_deg_unaligned"])
         return ev
 
     def after_step(self, trainer: "Trainer", step: int) -> dict:
         # same cadence as the trainer's progress line, so the bar shows the errors
         if step % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
             ev = self._record(step + 1)
+            if trainer.scene.ray_space.forward_facing:  # the aligned rotation is not the poses' (caveat)
+                return {"rot_ua": f"{ev['rot_err_deg_unaligned']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
             return {"rot": f"{ev['rot_err_deg']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
         return {}
 
@@ -255,8 +259,12 @@ class PoseTask(Task):
 
         plots.plot_cameras(os.path.join(out_dir, "cameras.png"), self.gt_c2w.cpu(), self.noisy_c2w.cpu(),
                            self.final["c2w_aligned"].cpu(), title=f"{trainer.scene.name}: camera poses")
+        unaligned = trainer.scene.ray_space.forward_facing and len(self.history.get("rot_err_deg_unaligned", [])) == len(
+            self.history["step"])
         plots.plot_pose_error_curve(os.path.join(out_dir, "pose_error.png"), self.history["step"],
-                                    self.history["rot_err_deg"], self.history["trans_err_x100"])
+                                    self.history["rot_err_deg_unaligned" if unaligned else "rot_err_deg"],
+                                    self.history["trans_err_x100"],
+                                    rot_label="rotation error, unaligned (degrees)" if unaligned else None)
 
 
 TASKS = {cls.name: cls for cls in (FullTask, FewShotTask, PoseTask)}

@@ -20,6 +20,7 @@ from .field import GridField
 from .freq_mask import G2fRSchedule
 from .occupancy import OccupancyGrid
 from .renderer import Renderer, default_step, pixel_rays
+from .sampling import ErrorMap
 from .tasks import Task
 
 # training compaction (Renderer._active_prefixes): on while the last compacted step kept less than
@@ -91,6 +92,9 @@ class Trainer:
         self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp, cfg.cp_lr if mtrf else None), cfg.lr)
         self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
         self.n_rays = cfg.batch_rays
+        # a share of the rays drawn where the error is (instant-ngp's error map), importance-weighted
+        self.error_map = (ErrorMap(*self.images.shape[:3], share=cfg.error_sampling, device=self.device)
+                          if cfg.error_sampling > 0 else None)
         # linear lr warm-up from 1 % (nerfacc): at lr 1e-2 and 2^16 samples a step, thin scenes (mic)
         # diverge without it; capped at a tenth of the run so that short runs keep most of their steps
         self.lr_warmup = min(cfg.lr_warmup, cfg.iters // 10)
@@ -111,15 +115,22 @@ class Trainer:
         return self.schedule.level_weights(step)
 
     def sample_pixels(self, n: int):
-        """Random (view, pixel) batch: view ids (n,), pixel centres u, v (n,), colors (n, 3)."""
+        """Random (view, pixel) batch: view ids (n,), pixel centres u, v (n,), colors (n, 3), the
+        (view, row, column) index, and per-ray loss weights (``None`` for uniform sampling; with
+        ``error_sampling`` the importance weights of :class:`~warpnerf.sampling.ErrorMap`)."""
         nv, h, w = self.images.shape[:3]
-        idx = torch.randint(0, nv, (n,), generator=self.gen, device=self.device)
-        px = torch.randint(0, w, (n,), generator=self.gen, device=self.device)
-        py = torch.randint(0, h, (n,), generator=self.gen, device=self.device)
+        weight = None
+        if self.error_map is not None:
+            idx, px, py, weight = self.error_map.sample(n, self.gen)
+        else:
+            idx = torch.randint(0, nv, (n,), generator=self.gen, device=self.device)
+            px = torch.randint(0, w, (n,), generator=self.gen, device=self.device)
+            py = torch.randint(0, h, (n,), generator=self.gen, device=self.device)
         # sort by view so consecutive rays (and their samples) come from one camera: better locality
         order = torch.argsort(idx * (h * w) + py * w + px)
         idx, px, py = idx[order], px[order], py[order]
-        return idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], (idx, py, px)
+        weight = None if weight is None else weight[order]
+        return idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], (idx, py, px), weight
 
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
@@ -130,7 +141,7 @@ class Trainer:
                 # an update that empties the grid leaves no sample and so no gradient to recover
                 # from: re-open every cell and let the next updates prune again
                 self.occupancy.bitfield.fill_(1)
-        idx, u, v, target, pix = self.sample_pixels(self.n_rays)
+        idx, u, v, target, pix, ray_weight = self.sample_pixels(self.n_rays)
         c2w = self.task.camera_poses(self, idx)
         o, d = pixel_rays(c2w, u, v, self.views.focal, self.views.cx, self.views.cy)
         jitter = torch.rand(o.shape[0], generator=self.gen, device=self.device)
@@ -151,14 +162,22 @@ class Trainer:
             self.kept_fraction = out.n_active / max(out.n_samples, 1)
         # rays past the sample budget got no samples: leave them out of the loss
         kept = out.n_rays
-        mse = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
+        if ray_weight is None:
+            mse = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
+        else:  # importance-weighted: an unbiased estimate of the mean over all pixels
+            ray_sq = (out.rgb[:kept] - target[:kept]).square().mean(dim=-1)
+            mse = (ray_weight[:kept] * ray_sq).mean()
+            self.error_map.update(pix[0][:kept], pix[2][:kept], pix[1][:kept], ray_sq.detach())
         loss = mse
         if out.distortion is not None and kept:
             loss = mse + distortion_weight * out.distortion[:kept].mean()
         with torch.no_grad():
             # the loss of rendering nothing (background only) on the same pixels: see check_learning
             bg = self.background.expand_as(target) if background is None else background
-            empty_loss = torch.nn.functional.mse_loss(bg[:kept], target[:kept])
+            if ray_weight is None:
+                empty_loss = torch.nn.functional.mse_loss(bg[:kept], target[:kept])
+            else:
+                empty_loss = (ray_weight[:kept] * (bg[:kept] - target[:kept]).square().mean(dim=-1)).mean()
         if not torch.isfinite(loss):
             raise TrainingError(f"non-finite loss ({loss.item()}) at step {step}; try a lower --lr")
         factor = cfg.lr_final_ratio ** (step / max(cfg.iters - 1, 1))
@@ -251,7 +270,8 @@ class Trainer:
                 "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
                 "rng": rng_state(self.gen), "n_rays": self.n_rays, "loss_ratio": self.loss_ratio,
                 "kept_fraction": self.kept_fraction, "history": self.history, "train_seconds": self.train_seconds,
-                "task": self.task.state_dict()}
+                "task": self.task.state_dict(),
+                **({"error_map": self.error_map.state_dict()} if self.error_map is not None else {})}
 
     def load_state_dict(self, state: dict) -> None:
         from .checkpoint import CheckpointError, set_rng_state
@@ -279,6 +299,8 @@ class Trainer:
         self.history = {k: list(v) for k, v in state["history"].items()}
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.task.load_state_dict(state["task"])
+        if self.error_map is not None and "error_map" in state:
+            self.error_map.load_state_dict(state["error_map"])
 
 
 def start_memory_window() -> None:
