@@ -72,6 +72,15 @@ def test_a_fitted_map_samples_uniformly():
     assert torch.allclose(weight, torch.ones_like(weight))
 
 
+def test_huge_captures_get_fewer_cells_per_image():
+    from warpnerf.sampling import MAX_CELLS
+
+    em = ErrorMap(5000, 300, 400, share=0.5)  # 7-pixel cells, 43 x 58 each: 12.5M categories, fine
+    assert (em.cell, em.rows, em.cols) == (7, 43, 58)
+    em = ErrorMap(20000, 300, 400, share=0.5)  # 49.9M with those: 32 per side, 13-pixel cells, 14.9M
+    assert (em.cell, em.rows, em.cols) == (13, 24, 31) and em.sq_err.numel() <= MAX_CELLS
+
+
 def test_share_must_be_a_fraction():
     with pytest.raises(ValueError, match="error_sampling"):
         ErrorMap(1, 4, 4, share=1.0)

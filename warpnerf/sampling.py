@@ -20,6 +20,8 @@ import math
 
 import torch
 
+MAX_CELLS = 1 << 24  # torch.multinomial's limit on categories
+
 
 class ErrorMap:
     """Per-image error grid for ``n_views`` images of ``height`` x ``width`` pixels.
@@ -36,6 +38,10 @@ class ErrorMap:
             raise ValueError(f"error_sampling must be in (0, 1) (a share of the rays), got {share}")
         self.n_views, self.height, self.width = int(n_views), int(height), int(width)
         self.share, self.decay = float(share), float(decay)
+        # torch.multinomial takes at most 2^24 categories: fewer cells per image on huge captures
+        while cells > 1 and self.n_views * math.ceil(height / math.ceil(max(height, width) / cells)) * math.ceil(
+                width / math.ceil(max(height, width) / cells)) > MAX_CELLS:
+            cells //= 2
         self.cell = max(1, math.ceil(max(height, width) / cells))
         self.rows, self.cols = math.ceil(height / self.cell), math.ceil(width / self.cell)
         self.cells_per_view = self.rows * self.cols
@@ -55,9 +61,8 @@ class ErrorMap:
     def _cell_probabilities(self) -> torch.Tensor:
         p = self.sq_err.clamp_min(0).sqrt()
         total = p.sum()
-        if not bool(total > 0):  # nothing left to fit anywhere: uniform over pixels
-            return self.area / self.area.sum()
-        return p / total
+        # nothing left to fit anywhere: uniform over pixels (a select, not a branch: no device sync on CUDA)
+        return torch.where(total > 0, p / total.clamp_min(1e-30), self.area / self.area.sum())
 
     def sample(self, n: int, gen: torch.Generator):
         """``n`` pixels: view ids, columns, rows (int64) and each pixel's importance weight (float)."""
