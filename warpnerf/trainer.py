@@ -167,7 +167,8 @@ class Trainer:
         else:  # importance-weighted: an unbiased estimate of the mean over all pixels
             ray_sq = (out.rgb[:kept] - target[:kept]).square().mean(dim=-1)
             mse = (ray_weight[:kept] * ray_sq).mean()
-            self.error_map.update(pix[0][:kept], pix[2][:kept], pix[1][:kept], ray_sq.detach())
+            view, row, col = (p[:kept] for p in pix)
+            self.error_map.update(view, col, row, ray_sq.detach())
         loss = mse
         if out.distortion is not None and kept:
             loss = mse + distortion_weight * out.distortion[:kept].mean()
