@@ -23,6 +23,12 @@ import torch
 MAX_CELLS = 1 << 24  # torch.multinomial's limit on categories
 
 
+def cell_layout(height: int, width: int, cells: int) -> tuple[int, int, int]:
+    """Square cells of ``ceil(max(height, width) / cells)`` pixels: (cell size, rows, columns)."""
+    cell = max(1, math.ceil(max(height, width) / cells))
+    return cell, math.ceil(height / cell), math.ceil(width / cell)
+
+
 class ErrorMap:
     """Per-image error grid for ``n_views`` images of ``height`` x ``width`` pixels.
 
@@ -38,12 +44,11 @@ class ErrorMap:
             raise ValueError(f"error_sampling must be in (0, 1) (a share of the rays), got {share}")
         self.n_views, self.height, self.width = int(n_views), int(height), int(width)
         self.share, self.decay = float(share), float(decay)
+        self.cell, self.rows, self.cols = cell_layout(self.height, self.width, cells)
         # torch.multinomial takes at most 2^24 categories: fewer cells per image on huge captures
-        while cells > 1 and self.n_views * math.ceil(height / math.ceil(max(height, width) / cells)) * math.ceil(
-                width / math.ceil(max(height, width) / cells)) > MAX_CELLS:
+        while cells > 1 and self.n_views * self.rows * self.cols > MAX_CELLS:
             cells //= 2
-        self.cell = max(1, math.ceil(max(height, width) / cells))
-        self.rows, self.cols = math.ceil(height / self.cell), math.ceil(width / self.cell)
+            self.cell, self.rows, self.cols = cell_layout(self.height, self.width, cells)
         self.cells_per_view = self.rows * self.cols
         dev = torch.device(device)
         # every cell starts at the same error: the first draws are uniform over cells

@@ -64,6 +64,15 @@ def flush_tiny_moments(optimizer: torch.optim.Optimizer) -> None:
                 m.masked_fill_(m.abs() < below, 0.0)
 
 
+def ray_mse(rgb: torch.Tensor, target: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean squared error of (R, 3) ray colours; with per-ray ``weight`` (R,) (error sampling's importance
+    weights) the weighted mean over rays of each ray's channel mean: an unbiased estimate of the
+    mean over all pixels."""
+    if weight is None:
+        return torch.nn.functional.mse_loss(rgb, target)
+    return (weight * (rgb - target).square().mean(dim=-1)).mean()
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, scene: Scene, task: Task, device: str):
         self.cfg, self.scene, self.task = cfg, scene, task
@@ -162,23 +171,18 @@ class Trainer:
             self.kept_fraction = out.n_active / max(out.n_samples, 1)
         # rays past the sample budget got no samples: leave them out of the loss
         kept = out.n_rays
-        if ray_weight is None:
-            mse = torch.nn.functional.mse_loss(out.rgb[:kept], target[:kept])
-        else:  # importance-weighted: an unbiased estimate of the mean over all pixels
-            ray_sq = (out.rgb[:kept] - target[:kept]).square().mean(dim=-1)
-            mse = (ray_weight[:kept] * ray_sq).mean()
+        weight = None if ray_weight is None else ray_weight[:kept]
+        mse = ray_mse(out.rgb[:kept], target[:kept], weight)
+        if self.error_map is not None:
             view, row, col = (p[:kept] for p in pix)
-            self.error_map.update(view, col, row, ray_sq.detach())
+            self.error_map.update(view, col, row, (out.rgb[:kept].detach() - target[:kept]).square().mean(dim=-1))
         loss = mse
         if out.distortion is not None and kept:
             loss = mse + distortion_weight * out.distortion[:kept].mean()
         with torch.no_grad():
             # the loss of rendering nothing (background only) on the same pixels: see check_learning
             bg = self.background.expand_as(target) if background is None else background
-            if ray_weight is None:
-                empty_loss = torch.nn.functional.mse_loss(bg[:kept], target[:kept])
-            else:
-                empty_loss = (ray_weight[:kept] * (bg[:kept] - target[:kept]).square().mean(dim=-1)).mean()
+            empty_loss = ray_mse(bg[:kept], target[:kept], weight)
         if not torch.isfinite(loss):
             raise TrainingError(f"non-finite loss ({loss.item()}) at step {step}; try a lower --lr")
         factor = cfg.lr_final_ratio ** (step / max(cfg.iters - 1, 1))
