@@ -94,11 +94,12 @@ class ErrorMap:
     @torch.no_grad()
     def update(self, idx: torch.Tensor, px: torch.Tensor, py: torch.Tensor, sq_err: torch.Tensor) -> None:
         """Blend each touched cell's running squared error with the mean ``sq_err`` of its rays."""
-        cell = self.cell_of(idx, px, py)
-        total = torch.zeros_like(self.sq_err).index_add_(0, cell, sq_err.float())
-        count = torch.zeros_like(self.sq_err).index_add_(0, cell, torch.ones_like(sq_err, dtype=torch.float32))
-        hit = count > 0
-        self.sq_err[hit] = self.decay * self.sq_err[hit] + (1.0 - self.decay) * (total[hit] / count[hit])
+        # sums over the touched cells only (a batch touches a few thousand of the map's cells);
+        # index_add_ adds each cell's rays in batch order, as a map-sized buffer would
+        hit, slot = torch.unique(self.cell_of(idx, px, py), return_inverse=True)
+        total = sq_err.new_zeros(hit.shape[0], dtype=torch.float32).index_add_(0, slot, sq_err.float())
+        count = torch.zeros_like(total).index_add_(0, slot, torch.ones_like(sq_err, dtype=torch.float32))
+        self.sq_err[hit] = self.decay * self.sq_err[hit] + (1.0 - self.decay) * (total / count)
 
     def state_dict(self) -> dict:
         return {"sq_err": self.sq_err}
