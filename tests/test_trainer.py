@@ -196,8 +196,8 @@ def test_pose_gradient_path_has_no_cpu_index_backward():
     from warpnerf.renderer import pixel_rays
 
     t = make_trainer("pose", iters=10)
-    idx, u, v, *_ = t.sample_pixels(t.n_rays)
-    o, d = pixel_rays(t.task.camera_poses(t, idx), u, v, t.views.focal, t.views.cx, t.views.cy)
+    batch = t.sample_pixels(t.n_rays)
+    o, d = pixel_rays(t.task.camera_poses(t, batch.view), batch.u, batch.v, t.views.focal, t.views.cx, t.views.cy)
     out = t.renderer.render_rays(o.contiguous(), d.contiguous(), t.level_weights(0),
                                  torch.rand(o.shape[0], generator=t.gen))
     assert out.n_samples > 0

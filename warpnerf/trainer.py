@@ -7,7 +7,7 @@ helpers live in :mod:`warpnerf.evaluate`.
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -28,6 +28,18 @@ from .tasks import Task
 # grid's update period, so a 16-step window always holds one probe and one update)
 COMPACT_BELOW = 0.7
 COMPACT_PROBE_EVERY = 16
+
+
+class PixelBatch(NamedTuple):
+    """One step's training pixels (:meth:`Trainer.sample_pixels`), sorted by (view, row, column)."""
+
+    view: torch.Tensor  # (n,) int64 view ids
+    u: torch.Tensor  # (n,) pixel-centre columns (float)
+    v: torch.Tensor  # (n,) pixel-centre rows (float)
+    rgb: torch.Tensor  # (n, 3) target colours
+    row: torch.Tensor  # (n,) int64 pixel rows
+    col: torch.Tensor  # (n,) int64 pixel columns
+    weight: Optional[torch.Tensor]  # (n,) loss weights; None for uniform sampling
 
 
 class TrainingError(RuntimeError):
@@ -123,10 +135,9 @@ class Trainer:
         launchers read it without touching the device (no CUDA sync per launch)."""
         return self.schedule.level_weights(step)
 
-    def sample_pixels(self, n: int):
-        """Random (view, pixel) batch: view ids (n,), pixel centres u, v (n,), colors (n, 3), the
-        (view, row, column) index, and per-ray loss weights (``None`` for uniform sampling; with
-        ``error_sampling`` the importance weights of :class:`~warpnerf.sampling.ErrorMap`)."""
+    def sample_pixels(self, n: int) -> PixelBatch:
+        """Random (view, pixel) batch of ``n`` rays; the loss weights are ``None`` for uniform
+        sampling, with ``error_sampling`` the importance weights of :class:`~warpnerf.sampling.ErrorMap`."""
         nv, h, w = self.images.shape[:3]
         weight = None
         if self.error_map is not None:
@@ -139,7 +150,7 @@ class Trainer:
         order = torch.argsort(idx * (h * w) + py * w + px)
         idx, px, py = idx[order], px[order], py[order]
         weight = None if weight is None else weight[order]
-        return idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], (idx, py, px), weight
+        return PixelBatch(idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], py, px, weight)
 
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
@@ -150,16 +161,17 @@ class Trainer:
                 # an update that empties the grid leaves no sample and so no gradient to recover
                 # from: re-open every cell and let the next updates prune again
                 self.occupancy.bitfield.fill_(1)
-        idx, u, v, target, pix, ray_weight = self.sample_pixels(self.n_rays)
-        c2w = self.task.camera_poses(self, idx)
-        o, d = pixel_rays(c2w, u, v, self.views.focal, self.views.cx, self.views.cy)
+        batch = self.sample_pixels(self.n_rays)
+        target = batch.rgb
+        c2w = self.task.camera_poses(self, batch.view)
+        o, d = pixel_rays(c2w, batch.u, batch.v, self.views.focal, self.views.cx, self.views.cy)
         jitter = torch.rand(o.shape[0], generator=self.gen, device=self.device)
         background = None
         if self.alpha is not None:
             # the target was composited on the scene's background: swap it for a random one per ray,
             # so a transparent field cannot pass for the (white) background (instant-ngp, nerfacc)
             background = torch.rand(o.shape[0], 3, generator=self.gen, device=self.device)
-            target = target + (1.0 - self.alpha[pix])[:, None] * (background - self.background)
+            target = target + (1.0 - self.alpha[batch.view, batch.row, batch.col])[:, None] * (background - self.background)
         # compaction pays when many samples lie behind opaque surfaces (lego late in training: 0.91x
         # the step time) and costs when few do (fern, 1 % behind: 1.15x): compact while the last
         # compacted step kept less than COMPACT_BELOW of its samples, and probe every 16 steps
@@ -171,11 +183,11 @@ class Trainer:
             self.kept_fraction = out.n_active / max(out.n_samples, 1)
         # rays past the sample budget got no samples: leave them out of the loss
         kept = out.n_rays
-        weight = None if ray_weight is None else ray_weight[:kept]
+        weight = None if batch.weight is None else batch.weight[:kept]
         mse = ray_mse(out.rgb[:kept], target[:kept], weight)
         if self.error_map is not None:
-            view, row, col = (p[:kept] for p in pix)
-            self.error_map.update(view, col, row, (out.rgb[:kept].detach() - target[:kept]).square().mean(dim=-1))
+            self.error_map.update(batch.view[:kept], batch.col[:kept], batch.row[:kept],
+                                  (out.rgb[:kept].detach() - target[:kept]).square().mean(dim=-1))
         loss = mse
         if out.distortion is not None and kept:
             loss = mse + distortion_weight * out.distortion[:kept].mean()
