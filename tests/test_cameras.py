@@ -374,3 +374,20 @@ def test_trans_err_is_barfs_quantity(noise):
     assert abs(ev["rot_err_deg"] - rot_ref) <= 1e-5
     assert abs(ev["trans_err_x100"] - trans_ref) <= 1e-5
     assert ev["centre_err_x100"] != pytest.approx(ev["trans_err_x100"], rel=1e-3)
+
+
+def test_camera_frame_residuals_recover_a_shared_offset():
+    gt = _ring_cameras(16, dtype=torch.float64)
+    # every camera moved by -0.01 along its own y axis in w2c terms, and pitched by 0.02 degrees
+    w2c = C.invert(gt)
+    pitch = C.rotation_about_axis((1.0, 0.0, 0.0), math.radians(0.02), dtype=torch.float64)
+    shifted = torch.cat([pitch @ w2c[:, :, :3], pitch @ w2c[:, :, 3:] + torch.tensor([0.0, -0.01, 0.0],
+                                                                                   dtype=torch.float64)[:, None]], -1)
+    dt, w = C.camera_frame_residuals(C.invert(shifted), gt)
+    # t = pitch @ t_gt + offset: the offset plus the pitch turning t_gt = (0, 0, -4)
+    expect_t = 100 * ((pitch @ w2c[:, :, 3:])[:, :, 0] - w2c[:, :, 3] + torch.tensor([0.0, -0.01, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(dt, expect_t, atol=1e-9, rtol=0)
+    assert abs(dt.mean(0)[1].item() - 100 * (-0.01 + 4 * math.sin(math.radians(0.02)))) < 1e-6
+    # rotation errors are log(R_gt^T R) of the camera-to-world rotations: turning w2c by +0.02 degrees
+    # about x turns c2w by -0.02
+    torch.testing.assert_close(w, torch.tensor([-0.02, 0.0, 0.0], dtype=torch.float64).expand_as(w), atol=1e-9, rtol=0)

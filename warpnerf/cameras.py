@@ -388,6 +388,15 @@ def translation_error(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
     return (t1 - t2).norm(dim=-1)
 
 
+def camera_frame_residuals(c2w: torch.Tensor, c2w_gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view pose residuals in each camera's own axes, for (N, 3, 4) poses in one frame:
+    (N, 3) ``t_w2c - t_w2c_gt`` x 100 (BARF's translation error is its norm) and (N, 3) the
+    rotation vector of ``R_gt^T R`` in degrees (float64)."""
+    t_res = 100.0 * (invert(c2w)[:, :, 3] - invert(c2w_gt)[:, :, 3])
+    rot_res = torch.rad2deg(so3_log(c2w_gt[:, :, :3].transpose(1, 2).double() @ c2w[:, :, :3].double()))
+    return t_res, rot_res
+
+
 def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:
     """Pose accuracy of estimated training poses after Sim(3) alignment (BARF protocol).
 
@@ -423,9 +432,8 @@ def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:
     aligned = apply_sim3_to_poses(est, s, R, t)
     rot = rotation_error_deg(aligned, gt)
     centre = 100.0 * translation_error(aligned[:, :, 3], gt[:, :, 3])
-    t_res = 100.0 * (invert(aligned)[:, :, 3] - invert(gt)[:, :, 3])  # w2c translations: camera axes
+    t_res, rot_res = camera_frame_residuals(aligned, gt)
     trans = t_res.norm(dim=-1)
-    rot_res = torch.rad2deg(so3_log(gt[:, :, :3].transpose(1, 2).double() @ aligned[:, :, :3].double()))
     return {
         "rot_err_deg": float(rot.mean()),
         "rot_err_deg_unaligned": float(rotation_error_deg(est, gt).mean()),

@@ -34,12 +34,20 @@ class PixelBatch(NamedTuple):
     """One step's training pixels (:meth:`Trainer.sample_pixels`), sorted by (view, row, column)."""
 
     view: torch.Tensor  # (n,) int64 view ids
-    u: torch.Tensor  # (n,) pixel-centre columns (float)
-    v: torch.Tensor  # (n,) pixel-centre rows (float)
-    rgb: torch.Tensor  # (n, 3) target colours
     row: torch.Tensor  # (n,) int64 pixel rows
     col: torch.Tensor  # (n,) int64 pixel columns
+    rgb: torch.Tensor  # (n, 3) target colours
     weight: Optional[torch.Tensor]  # (n,) loss weights; None for uniform sampling
+
+    @property
+    def u(self) -> torch.Tensor:
+        """(n,) pixel-centre columns: the centre of pixel (i, j) is (i + 0.5, j + 0.5)."""
+        return self.col.float() + 0.5
+
+    @property
+    def v(self) -> torch.Tensor:
+        """(n,) pixel-centre rows."""
+        return self.row.float() + 0.5
 
 
 class TrainingError(RuntimeError):
@@ -150,7 +158,7 @@ class Trainer:
         order = torch.argsort(idx * (h * w) + py * w + px)
         idx, px, py = idx[order], px[order], py[order]
         weight = None if weight is None else weight[order]
-        return PixelBatch(idx, px.float() + 0.5, py.float() + 0.5, self.images[idx, py, px], py, px, weight)
+        return PixelBatch(idx, py, px, self.images[idx, py, px], weight)
 
     def train_step(self, step: int) -> dict:
         cfg = self.cfg

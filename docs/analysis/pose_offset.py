@@ -15,21 +15,10 @@ import os
 import torch
 
 from warpnerf import device as devmod
-from warpnerf.cameras import evaluate_poses, invert, perturb_poses, so3_log
+from warpnerf.cameras import camera_frame_residuals, evaluate_poses, perturb_poses
 from warpnerf.checkpoint import load_checkpoint
 from warpnerf.run import load_scene_for, make_task, read_run_config
 from warpnerf.trainer import Trainer
-
-DEG = 180.0 / torch.pi
-
-
-def camera_frame_errors(est: torch.Tensor, gt: torch.Tensor):
-    """(N, 3) w2c translation errors x100 and (N, 3) rotation errors in degrees, each camera's frame."""
-    est, gt = est.double(), gt.double()
-    dt = 100 * (invert(est)[:, :, 3] - invert(gt)[:, :, 3])
-    w = so3_log(gt[:, :, :3].transpose(1, 2) @ est[:, :, :3]) * DEG
-    return dt, w
-
 
 def fmt(v: torch.Tensor) -> str:
     return "(" + ", ".join(f"{x:+.4f}" for x in v.tolist()) + ")"
@@ -44,7 +33,7 @@ def load_trainer(run: str) -> Trainer:
 
 def report(name: str, est: torch.Tensor, gt: torch.Tensor) -> None:
     ev = evaluate_poses(est, gt)
-    dt, w = camera_frame_errors(ev["c2w_aligned"], gt)
+    dt, w = camera_frame_residuals(ev["c2w_aligned"].double(), gt.double())
     print(f"{name}: rot {ev['rot_err_deg']:.4f} deg, trans x100 {ev['trans_err_x100']:.4f}; shared t {fmt(dt.mean(0))}, "
           f"without it {(dt - dt.mean(0)).norm(dim=1).mean():.4f}; shared rot {fmt(w.mean(0))} deg")
 
@@ -72,7 +61,7 @@ def cmd_refine(args) -> None:
     views = trainer.scene.train
     views = views.subset(list(range(0, len(views), max(1, len(views) // args.views)))[: args.views])
     gt = views.c2w.to(trainer.device).float()
-    dt, w = camera_frame_errors(refine_poses(trainer, gt, views), gt)
+    dt, w = camera_frame_residuals(refine_poses(trainer, gt, views).double(), gt.double())
     n = dt.shape[0] ** 0.5
     print(f"{dt.shape[0]} GT poses refined: shared t {fmt(dt.mean(0))} +- {fmt(dt.std(0) / n)} (standard error); "
           f"shared rot {fmt(w.mean(0))} +- {fmt(w.std(0) / n)} deg")
