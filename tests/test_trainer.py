@@ -629,10 +629,11 @@ def test_forward_facing_test_views_turn_with_the_training_cameras():
 
 def test_pose_progress_shows_the_unaligned_rotation_on_forward_facing_scenes():
     """The progress bar shows rot_err_deg_unaligned ("rot_ua") on NDC scenes, where the aligned figure
-    is not the poses' (the caveat), and BARF's aligned "rot" elsewhere; the history keeps both."""
+    is not the poses' (the caveat), and BARF's aligned "rot" elsewhere; the history keeps both, and the
+    shared camera-frame translation offset."""
     from types import SimpleNamespace
 
-    from warpnerf.cameras import look_at
+    from warpnerf.cameras import evaluate_poses, look_at
     from warpnerf.config import TrainConfig
     from warpnerf.data.rayspace import RaySpace
     from warpnerf.tasks import PoseTask
@@ -648,6 +649,10 @@ def test_pose_progress_shows_the_unaligned_rotation_on_forward_facing_scenes():
         want = task.history["rot_err_deg_unaligned" if key == "rot_ua" else "rot_err_deg"][-1]
         assert float(shown[key]) == pytest.approx(want, abs=5e-4) and want > 0
         assert len(task.history["rot_err_deg_unaligned"]) == len(task.history["step"]) == 2
+        # and the camera-frame offset every view shares, per record (README, the pose bullet)
+        offset = evaluate_poses(task.current_c2w(), task.gt_c2w)["trans_offset_cam_x100"]
+        assert task.history["trans_offset_cam_x100"][-1] == pytest.approx(offset) and len(offset) == 3
+        assert max(abs(x) for x in offset) > 0
         assert task.after_step(trainer, 1) == {}  # between progress refreshes
 
 
