@@ -36,6 +36,11 @@ def report(name: str, est: torch.Tensor, gt: torch.Tensor) -> None:
     dt, w = camera_frame_residuals(ev["c2w_aligned"].double(), gt.double())
     print(f"{name}: rot {ev['rot_err_deg']:.4f} deg, trans x100 {ev['trans_err_x100']:.4f}; shared t {fmt(dt.mean(0))}, "
           f"without it {(dt - dt.mean(0)).norm(dim=1).mean():.4f}; shared rot {fmt(w.mean(0))} deg")
+    # how t_y depends on the camera's elevation above the world's xy plane (+z up, Blender's frame)
+    c = gt[:, :, 3].double()
+    cos_el = torch.cos(torch.asin((c[:, 2] / c.norm(dim=1)).clamp(-1, 1)))
+    a, b = torch.linalg.lstsq(torch.stack([cos_el, torch.ones_like(cos_el)], 1), dt[:, 1:2]).solution.flatten().tolist()
+    print(f"       t_y ~ {a:+.4f} cos(elevation) {b:+.4f}")
 
 
 def cmd_run(args) -> None:
