@@ -202,6 +202,28 @@ def test_pose_correction_gradient_only_reaches_indexed_views():
     assert torch.equal(grad[rest], torch.zeros(4, 6))
 
 
+@pytest.mark.parametrize("frame", ["world", "camera"])
+def test_pose_correction_for_rays_equals_one_exponential_per_ray(frame):
+    """for_rays (one exponential per distinct view, gathered to the rays) gives the per-ray forward's
+    poses and the same gradient on every view's correction, for unsorted indices with repeats."""
+    c2w = _ring_cameras(7)
+    corr = C.PoseCorrection(7, frame=frame)
+    with torch.no_grad():
+        corr.delta.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
+    idx = torch.tensor([5, 1, 1, 3, 5, 5, 0, 3, 1])
+    weights = torch.randn(len(idx), 3, 4, generator=torch.Generator().manual_seed(2))
+    grads = []
+    for poses in (lambda: corr(c2w[idx], idx), lambda: corr.for_rays(c2w, idx)):
+        corr.delta.grad = None
+        out = poses()
+        (out * weights).sum().backward()
+        grads.append((out.detach(), corr.delta.grad.clone()))
+    torch.testing.assert_close(grads[1][0], grads[0][0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(grads[1][1], grads[0][1], rtol=1e-5, atol=1e-6)
+    assert torch.equal(grads[1][1][[2, 4, 6]], torch.zeros(3, 6))  # views without rays get no gradient
+    assert grads[1][1][[0, 1, 3, 5]].abs().sum(dim=1).min() > 0
+
+
 def test_pose_correction_recovers_perturbation_by_adam():
     n = 10
     c2w = _ring_cameras(n)

@@ -60,7 +60,7 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
             first = 0
             while first < idx.shape[0]:
                 k, u, v = idx[first:], px[first:], py[first:]
-                o, d = pixel_rays(corr(c2w[k], k), u.float() + 0.5, v.float() + 0.5, views.focal, views.cx, views.cy)
+                o, d = pixel_rays(corr.for_rays(c2w, k), u.float() + 0.5, v.float() + 0.5, views.focal, views.cx, views.cy)
                 out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
                 n = max(out.n_rays, 1)  # the budget holds one ray's samples (render_image does the same)
                 # sum of per-view means: each view's gradient is what refining it alone would see

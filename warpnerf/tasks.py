@@ -181,7 +181,7 @@ class PoseTask(Task):
         return self.correction(self.noisy_c2w)
 
     def camera_poses(self, trainer: "Trainer", idx: torch.Tensor) -> torch.Tensor:
-        return self.correction(self.noisy_c2w[idx], idx)
+        return self.correction.for_rays(self.noisy_c2w, idx)
 
     def optimizer_step(self, trainer: "Trainer", step: int) -> None:
         lr = self.lr_scale * exp_decay(self.cfg.pose_lr, self.cfg.pose_lr_final, step / max(self.cfg.iters - 1, 1))
