@@ -38,7 +38,7 @@ def report(name: str, est: torch.Tensor, gt: torch.Tensor) -> None:
           f"without it {(dt - dt.mean(0)).norm(dim=1).mean():.4f}; shared rot {fmt(w.mean(0))} deg")
     # how t_y depends on the camera's elevation above the world's xy plane (+z up, Blender's frame)
     c = gt[:, :, 3].double()
-    cos_el = torch.cos(torch.asin((c[:, 2] / c.norm(dim=1)).clamp(-1, 1)))
+    cos_el = c[:, :2].norm(dim=1) / c.norm(dim=1)
     a, b = torch.linalg.lstsq(torch.stack([cos_el, torch.ones_like(cos_el)], 1), dt[:, 1:2]).solution.flatten().tolist()
     print(f"       t_y ~ {a:+.4f} cos(elevation) {b:+.4f}")
 
