@@ -210,13 +210,11 @@ def test_short_training_matches_the_blender_load(exported):
     ref = train_psnr(ref_scene)
     for layout, scene in scenes.items():
         scene = dataclasses.replace(scene, ray_space=ref_scene.ray_space)
-        # the loaders agree to float32 rounding: that is the exact check
-        for split in ("train", "test"):
-            torch.testing.assert_close(getattr(scene, split).c2w, getattr(ref_scene, split).c2w, rtol=0, atol=1e-6)
         psnr = train_psnr(scene)
         print(layout, psnr, ref)
-        # 40 steps at lr 2e-2 amplify a one-ulp pose difference (6e-8): 0.19 dB on one VM (2026-12-05), < 0.1 on
-        # others; a wrong pose convention costs several dB
+        # the exact check of the loaders' poses is test_capture_layout_gives_the_blender_rays (every ray to 1e-5);
+        # here 40 steps at lr 2e-2 amplify their one-ulp difference (6e-8): 0.19 dB on one VM (2026-12-05), < 0.1
+        # on others; a wrong pose convention costs several dB
         assert abs(psnr - ref) < 0.5, (layout, psnr, ref)
     assert ref > 12.0  # it did learn something in 40 steps (white background alone is ~10 dB)
 
