@@ -705,3 +705,48 @@ def test_training_compaction_follows_the_kept_fraction_and_resumes():
     other = make_trainer(iters=80)
     other.load_state_dict(state)
     assert other.kept_fraction == t.kept_fraction
+
+
+def test_target_blur_reads_targets_at_gaussian_offsets():
+    """``target_blur``: rays keep their pixels; colour and alpha are read at one Gaussian offset per ray
+    whose standard deviation is ``target_blur`` cells of the finest active level, in pixels."""
+    t = make_trainer("full", iters=100, g2fr=True, target_blur=1.0)
+    assert make_trainer("full", iters=10).target_blur_px(0) == 0.0  # off by default
+    cfg = t.cfg
+    # step 0: only the base level, cell = box / base_resolution, at the cameras' mean distance
+    box = torch.tensor(t.scene.aabb)
+    dist = (t.train_c2w[:, :, 3] - 0.5 * (box[:3] + box[3:])).norm(dim=-1).mean()
+    expect = float((box[3:] - box[:3]).max()) / cfg.base_resolution * t.views.focal / float(dist)
+    assert t.target_blur_px(0) == pytest.approx(expect, rel=1e-5)
+    sigmas = [t.target_blur_px(s) for s in (0, 10, 25, 45)]
+    assert all(a > b for a, b in zip(sigmas, sigmas[1:]))  # finer as levels switch on
+    for step in (50, 99):  # every level on from beta * iters = 50: one cell of the finest level
+        assert t.target_blur_px(step) == pytest.approx(expect * cfg.base_resolution / cfg.max_resolution, rel=1e-5)
+
+    # images and alpha that encode their own pixel coordinates
+    nv, h, w = t.images.shape[:3]
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    t.images = torch.stack([ys, xs, torch.zeros_like(ys)], dim=-1).expand(nv, h, w, 3).contiguous()
+    t.alpha = (xs * 1000 + ys).expand(nv, h, w).contiguous()
+    sharp = t.sample_pixels(4096)
+    assert torch.equal(sharp.rgb[:, 0], sharp.row.float()) and torch.equal(sharp.rgb[:, 1], sharp.col.float())
+    batch = t.sample_pixels(20000, blur_px=3.0)
+    dy, dx = batch.rgb[:, 0] - batch.row.float(), batch.rgb[:, 1] - batch.col.float()
+    assert torch.equal(batch.alpha, batch.rgb[:, 1] * 1000 + batch.rgb[:, 0])  # alpha from the same pixel
+    assert (batch.rgb[:, 0] >= 0).all() and (batch.rgb[:, 0] <= h - 1).all()  # clamped to the image
+    inside = (batch.row >= 12) & (batch.row < h - 12) & (batch.col >= 12) & (batch.col < w - 12)  # 4 sigma from edges
+    for d in (dy[inside], dx[inside]):
+        assert abs(float(d.mean())) < 0.1
+        assert float(d.std()) == pytest.approx((3.0 ** 2 + 1 / 12) ** 0.5, rel=0.05)  # Gaussian, rounded
+
+
+def test_target_blur_is_refused_on_forward_facing_scenes():
+    import dataclasses
+
+    from warpnerf.data.rayspace import RaySpace
+
+    cfg = build_config("full", overrides={**TINY, "target_blur": 1.0})
+    scene = tiny_scene(size=32)
+    ndc = dataclasses.replace(scene, ray_space=RaySpace.ndc(scene.train.focal, 32, 32))
+    with pytest.raises(ValueError, match="target_blur needs an object-centred scene"):
+        Trainer(cfg, ndc, make_task(cfg), "cpu")
