@@ -100,7 +100,6 @@ class TrainConfig:
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on the ray space's t (0 = off); concentrates each ray's weight, removing haze
     random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
-    target_blur: float = 0.0  # blur the training targets while the grid is coarse: each target pixel is read at a Gaussian offset of this many finest-active-cell widths (in pixels), following the G2fR schedule's tau (0 = off; object-centred scenes)
     error_sampling: float = 0.0  # share of training rays drawn where each image's recent error is highest (instant-ngp's error map), importance-weighted; 0 = uniform
     # --- G²fR (paper eq. 15) ---
     g2fr: bool = False  # mask grid levels coarse to fine
@@ -348,7 +347,7 @@ def validate(cfg: TrainConfig) -> None:
     if not math.isfinite(cfg.cp_density_shift):
         raise ConfigError(f"cp_density_shift must be a finite number, got {cfg.cp_density_shift}")
     for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step", "occ_threshold",
-                "distortion_weight", "target_blur"):
+                "distortion_weight"):
         value = getattr(cfg, key)
         if value is not None and not (value >= 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a finite number >= 0, got {value}")

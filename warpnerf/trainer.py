@@ -17,7 +17,7 @@ from .config import TrainConfig
 from .data.scene import Scene
 from .encoders import make_grid_encoder
 from .field import GridField
-from .freq_mask import G2fRSchedule, g2fr_tau
+from .freq_mask import G2fRSchedule
 from .occupancy import OccupancyGrid
 from .renderer import Renderer, default_step, pixel_rays
 from .sampling import ErrorMap
@@ -38,7 +38,6 @@ class PixelBatch(NamedTuple):
     col: torch.Tensor  # (n,) int64 pixel columns
     rgb: torch.Tensor  # (n, 3) target colours
     weight: Optional[torch.Tensor]  # (n,) loss weights; None for uniform sampling
-    alpha: Optional[torch.Tensor] = None  # (n,) the targets' alpha (random backgrounds), else None
 
     @property
     def u(self) -> torch.Tensor:
@@ -136,17 +135,6 @@ class Trainer:
         self.kept_fraction = 1.0
         self.callbacks: list = []  # called as cb(trainer, step, stats) after every step (warpnerf.monitor)
         task.setup(self)
-        self._box_extent = self._pixels_per_unit = 0.0
-        if cfg.target_blur > 0.0:
-            if scene.ray_space.forward_facing:
-                raise ValueError("target_blur needs an object-centred scene: on forward-facing (NDC) scenes a grid "
-                                 "cell has no single size in pixels")
-            box = torch.tensor(scene.aabb, dtype=torch.float64)
-            self._box_extent = float((box[3:] - box[:3]).max())
-            with torch.no_grad():  # the poses training starts from (the noisy ones for task pose)
-                c2w = task.camera_poses(self, torch.arange(len(views.c2w), device=self.device))
-            dist = (c2w[:, :, 3].double().cpu() - 0.5 * (box[:3] + box[3:])).norm(dim=-1).mean()
-            self._pixels_per_unit = float(views.focal) / float(dist)
 
     # --- training ---------------------------------------------------------------------------
 
@@ -155,29 +143,9 @@ class Trainer:
         launchers read it without touching the device (no CUDA sync per launch)."""
         return self.schedule.level_weights(step)
 
-    def target_blur_px(self, step: int) -> float:
-        """Standard deviation in pixels of the target offset at ``step`` (``target_blur``; 0 = off).
-
-        A grid whose finest active level has N points per axis cannot draw detail finer than a cell
-        (box / N), yet its renderings are compared with sharp photographs; a coarse-to-fine image
-        pyramid (classical direct alignment) blurs the targets to the model's resolution instead.
-        The offset is ``target_blur`` cells at the G²fR schedule's tau (levels up to tau - 1/2 count
-        as active, at most the finest; whether or not the mask is on), converted to pixels at the
-        training cameras' mean distance from the box centre. The MSE against a target read at a random Gaussian offset has
-        the gradient of the MSE against the Gaussian-blurred image."""
-        if self.cfg.target_blur <= 0.0:
-            return 0.0
-        cfg = self.cfg
-        tau = g2fr_tau(step, cfg.iters, cfg.levels, cfg.g2fr_beta)
-        growth = (cfg.max_resolution / cfg.base_resolution) ** (1.0 / max(cfg.levels - 1, 1))
-        n_points = cfg.base_resolution * growth ** min(max(tau - 0.5, 0.0), cfg.levels - 1)
-        return cfg.target_blur * self._box_extent / n_points * self._pixels_per_unit
-
-    def sample_pixels(self, n: int, blur_px: float = 0.0) -> PixelBatch:
+    def sample_pixels(self, n: int) -> PixelBatch:
         """Random (view, pixel) batch of ``n`` rays; the loss weights are ``None`` for uniform
-        sampling, with ``error_sampling`` the importance weights of :class:`~warpnerf.sampling.ErrorMap`.
-        With ``blur_px`` > 0 each target (colour and alpha) is read at a Gaussian offset of that
-        standard deviation (rounded to a pixel, clamped to the image); the rays keep their pixels."""
+        sampling, with ``error_sampling`` the importance weights of :class:`~warpnerf.sampling.ErrorMap`."""
         nv, h, w = self.images.shape[:3]
         weight = None
         if self.error_map is not None:
@@ -190,13 +158,7 @@ class Trainer:
         order = torch.argsort(idx * (h * w) + py * w + px)
         idx, px, py = idx[order], px[order], py[order]
         weight = None if weight is None else weight[order]
-        ty, tx = py, px
-        if blur_px > 0.0:
-            offset = torch.randn(2, idx.shape[0], generator=self.gen, device=self.device) * blur_px
-            ty = (py + offset[0].round().long()).clamp_(0, h - 1)
-            tx = (px + offset[1].round().long()).clamp_(0, w - 1)
-        alpha = None if self.alpha is None else self.alpha[idx, ty, tx]
-        return PixelBatch(idx, py, px, self.images[idx, ty, tx], weight, alpha)
+        return PixelBatch(idx, py, px, self.images[idx, py, px], weight)
 
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
@@ -207,7 +169,7 @@ class Trainer:
                 # an update that empties the grid leaves no sample and so no gradient to recover
                 # from: re-open every cell and let the next updates prune again
                 self.occupancy.bitfield.fill_(1)
-        batch = self.sample_pixels(self.n_rays, self.target_blur_px(step))
+        batch = self.sample_pixels(self.n_rays)
         target = batch.rgb
         c2w = self.task.camera_poses(self, batch.view)
         o, d = pixel_rays(c2w, batch.u, batch.v, self.views.focal, self.views.cx, self.views.cy)
@@ -217,7 +179,7 @@ class Trainer:
             # the target was composited on the scene's background: swap it for a random one per ray,
             # so a transparent field cannot pass for the (white) background (instant-ngp, nerfacc)
             background = torch.rand(o.shape[0], 3, generator=self.gen, device=self.device)
-            target = target + (1.0 - batch.alpha)[:, None] * (background - self.background)
+            target = target + (1.0 - self.alpha[batch.view, batch.row, batch.col])[:, None] * (background - self.background)
         # compaction pays when many samples lie behind opaque surfaces (lego late in training: 0.91x
         # the step time) and costs when few do (fern, 1 % behind: 1.15x): compact while the last
         # compacted step kept less than COMPACT_BELOW of its samples, and probe every 16 steps
