@@ -36,6 +36,7 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
     rate decaying exponentially from ``pose_lr`` to ``pose_lr_final`` as in training: at a
     constant rate the last steps leave each pose jittering by about one learning rate."""
     from .cameras import PoseCorrection
+    from .trainer import PixelBatch
 
     n_views, n_steps = c2w.shape[0], trainer.cfg.pose_refine_steps
     weights = trainer.level_weights(trainer.cfg.iters)
@@ -59,13 +60,13 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
             # poses unrefined or drifting)
             first = 0
             while first < idx.shape[0]:
-                k, u, v = idx[first:], px[first:], py[first:]
-                o, d = pixel_rays(corr.for_rays(c2w, k), u.float() + 0.5, v.float() + 0.5, views.focal, views.cx, views.cy)
+                k, row, col = idx[first:], py[first:], px[first:]
+                px_batch = PixelBatch(view=k, row=row, col=col, rgb=images[k, row, col], weight=None)
+                o, d = pixel_rays(corr.for_rays(c2w, k), px_batch.u, px_batch.v, views.focal, views.cx, views.cy)
                 out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
                 n = max(out.n_rays, 1)  # the budget holds one ray's samples (render_image does the same)
                 # sum of per-view means: each view's gradient is what refining it alone would see
-                target = images[k[:n], v[:n], u[:n]]
-                loss = torch.nn.functional.mse_loss(out.rgb[:n], target, reduction="sum") / (3 * rays_per_step)
+                loss = torch.nn.functional.mse_loss(out.rgb[:n], px_batch.rgb[:n], reduction="sum") / (3 * rays_per_step)
                 loss.backward()
                 first += n
             opt.step()
