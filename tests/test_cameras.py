@@ -331,6 +331,19 @@ def test_evaluate_poses_per_view_errors():
     assert abs(trans[3] - expect) < 1e-8 and expect > 1.0
     assert trans[torch.arange(10) != 3].max() < 1e-8
     assert abs(ev["rot_err_deg"] - 0.5) < 1e-4
+    # one view 5 degrees off among exact ones: not converged, and the median does not see it
+    assert ev["unconverged_views"] == [3]
+    assert ev["rot_err_deg_median"] < 1e-4 and ev["trans_err_x100_median"] < 1e-8
+
+
+def test_unconverged_views_needs_both_bounds():
+    # errors of 0.3-0.5 deg with one at 1.2 deg: under 5x the median (2 deg), so converged;
+    # one at 3 deg is over both bounds; where every view is off (median 4 deg) none stands out
+    assert C.unconverged_views(torch.tensor([0.3, 0.4, 0.5, 0.4, 1.2])) == []
+    assert C.unconverged_views(torch.tensor([0.3, 0.4, 0.5, 0.4, 3.0])) == [4]
+    assert C.unconverged_views(torch.tensor([4.0, 3.5, 4.5, 4.2, 6.0])) == []
+    # a tiny median does not flag sub-degree scatter: the 1 degree floor holds
+    assert C.unconverged_views(torch.tensor([0.01, 0.02, 0.01, 0.9])) == []
 
 
 def test_evaluate_poses_separates_a_shared_offset_from_scatter():

@@ -153,3 +153,16 @@ def test_cli_sets_a_short_openmp_spin_before_torch_loads(user):
     assert proc.returncode == 0, proc.stderr
     expected = [user.get(k) for k in keys] if user else [None, "10000", "0"]
     assert proc.stdout.strip().splitlines()[-1] == str(expected)
+
+
+def test_summary_names_unconverged_pose_views():
+    from warpnerf.cli import _summary
+
+    m = {"psnr": 33.1, "ssim": 0.98, "iters": 3000, "train_seconds": 300.0, "render_seconds_per_view": 0.3,
+         "rot_err_deg": 0.447, "trans_err_x100": 0.722, "rot_err_deg_median": 0.229, "trans_err_x100_median": 0.61,
+         "unconverged_views": [18]}
+    line = _summary(m)
+    assert "rot err 0.447 deg" in line
+    assert "1 view(s) not converged (18;" in line and "median rot err 0.229 deg" in line
+    m["unconverged_views"] = []
+    assert "not converged" not in _summary(m)

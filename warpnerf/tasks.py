@@ -238,6 +238,9 @@ class PoseTask(Task):
         return {
             "rot_err_deg": ev["rot_err_deg"],
             "trans_err_x100": ev["trans_err_x100"],
+            "rot_err_deg_median": ev["rot_err_deg_median"],
+            "trans_err_x100_median": ev["trans_err_x100_median"],
+            "unconverged_views": ev["unconverged_views"],
             "rot_err_deg_per_view": ev["rot_err_deg_per_view"],
             "trans_err_x100_per_view": ev["trans_err_x100_per_view"],
             "centre_err_x100": ev["centre_err_x100"],
