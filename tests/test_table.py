@@ -150,3 +150,12 @@ def test_several_seeds_give_means_and_the_per_seed_gap():
     assert parser.parse_args(["table"]).seed == [0]
     with pytest.raises(SystemExit):
         parser.parse_args(["table", "--seed", "1,1"])
+
+
+def test_pose_table_names_unconverged_views_under_the_table():
+    rows = arms()
+    rows["w/"].update(unconverged_views=[79], rot_err_deg_median=0.091, trans_err_x100_median=0.612)
+    lines = format_table("pose", {"mic": rows}, "ngp").splitlines()
+    assert lines[-1] == ("mic w/ G2fR: 1 view(s) not converged (79; rot. err > 1 deg and 5x the median); "
+                         "median rot. err 0.091 deg, trans. err 0.612")
+    assert not any("w/o G2fR" in line for line in lines)  # only arms with stuck views get a line

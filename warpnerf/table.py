@@ -52,6 +52,14 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
             barf = {} if builtin else barf_numbers(scene, task)
             cells.append(" / ".join(fmt.format(barf[k]) for k, _, fmt in cols) if barf else "")
         lines.append("| " + " | ".join(cells) + " |")
+    if task == "pose":  # a view stuck far off dominates a mean: name it, with the medians
+        for scene, arms in rows.items():
+            for arm, m in arms.items():
+                stuck = m.get("unconverged_views")
+                if stuck:
+                    lines.append(f"\n{scene} {arm} G2fR: {len(stuck)} view(s) not converged ({', '.join(map(str, stuck))}; "
+                                 f"rot. err > 1 deg and 5x the median); median rot. err {m['rot_err_deg_median']:.3f} deg, "
+                                 f"trans. err {m['trans_err_x100_median']:.3f}")
     return "\n".join(lines)
 
 
