@@ -406,6 +406,7 @@ def camera_frame_residuals(c2w: torch.Tensor, c2w_gt: torch.Tensor) -> tuple[tor
 
 UNCONVERGED_MIN_DEG = 1.0
 UNCONVERGED_MEDIAN_RATIO = 5.0
+UNCONVERGED_RULE = f"rot. err > {UNCONVERGED_MIN_DEG:g} deg and {UNCONVERGED_MEDIAN_RATIO:g}x the median"  # for reports
 
 
 def unconverged_views(rot_err_deg: torch.Tensor) -> list[int]:

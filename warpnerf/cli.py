@@ -98,8 +98,10 @@ def _summary(m: dict) -> str:
         parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
         stuck = m.get("unconverged_views") or []
         if stuck:  # one view far off dominates the means: say so, with the medians
+            from .cameras import UNCONVERGED_RULE
+
             parts.append(f"{len(stuck)} view(s) not converged ({', '.join(map(str, stuck[:8]))}"
-                         f"{', ...' if len(stuck) > 8 else ''}; rot err > 1 deg and 5x the median): "
+                         f"{', ...' if len(stuck) > 8 else ''}; {UNCONVERGED_RULE}): "
                          f"median rot err {m['rot_err_deg_median']:.3f} deg, trans x100 {m['trans_err_x100_median']:.3f}")
     return "; ".join(parts)
 

@@ -57,8 +57,10 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
             for arm, m in arms.items():
                 stuck = m.get("unconverged_views")
                 if stuck:
+                    from .cameras import UNCONVERGED_RULE
+
                     lines.append(f"\n{scene} {arm} G2fR: {len(stuck)} view(s) not converged ({', '.join(map(str, stuck))}; "
-                                 f"rot. err > 1 deg and 5x the median); median rot. err {m['rot_err_deg_median']:.3f} deg, "
+                                 f"{UNCONVERGED_RULE}); median rot. err {m['rot_err_deg_median']:.3f} deg, "
                                  f"trans. err {m['trans_err_x100_median']:.3f}")
     return "\n".join(lines)
 
