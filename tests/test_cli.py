@@ -163,6 +163,9 @@ def test_summary_names_unconverged_pose_views():
          "unconverged_views": [18]}
     line = _summary(m)
     assert "rot err 0.447 deg" in line
-    assert "1 view(s) not converged (18;" in line and "median rot err 0.229 deg" in line
+    assert line.endswith("; 1 view(s) not converged (18; rot. err > 1 deg and 5x the median); "
+                         "median rot. err 0.229 deg, trans. err 0.610")
+    m["unconverged_views"] = list(range(10))  # the summary lists eight ids
+    assert "(0, 1, 2, 3, 4, 5, 6, 7, ...; rot. err" in _summary(m)
     m["unconverged_views"] = []
     assert "not converged" not in _summary(m)

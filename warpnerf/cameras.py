@@ -406,7 +406,7 @@ def camera_frame_residuals(c2w: torch.Tensor, c2w_gt: torch.Tensor) -> tuple[tor
 
 UNCONVERGED_MIN_DEG = 1.0
 UNCONVERGED_MEDIAN_RATIO = 5.0
-UNCONVERGED_RULE = f"rot. err > {UNCONVERGED_MIN_DEG:g} deg and {UNCONVERGED_MEDIAN_RATIO:g}x the median"  # for reports
+UNCONVERGED_RULE = f"rot. err > {UNCONVERGED_MIN_DEG:g} deg and {UNCONVERGED_MEDIAN_RATIO:g}x the median"
 
 
 def unconverged_views(rot_err_deg: torch.Tensor) -> list[int]:
@@ -414,6 +414,18 @@ def unconverged_views(rot_err_deg: torch.Tensor) -> list[int]:
     ``UNCONVERGED_MEDIAN_RATIO`` times the median: far outside the spread of the others."""
     bound = max(UNCONVERGED_MIN_DEG, UNCONVERGED_MEDIAN_RATIO * float(rot_err_deg.median()))
     return [int(i) for i in torch.nonzero(rot_err_deg > bound).flatten()]
+
+
+def describe_unconverged(metrics: dict, max_ids: Optional[int] = None) -> Optional[str]:
+    """One phrase for reports (the train summary, ``warpnerf table``) naming a pose run's
+    ``unconverged_views`` with the medians, or None when every view converged. ``max_ids`` caps
+    the ids listed."""
+    stuck = metrics.get("unconverged_views") or []
+    if not stuck:
+        return None
+    ids = ", ".join(map(str, stuck[:max_ids])) + (", ..." if max_ids is not None and len(stuck) > max_ids else "")
+    return (f"{len(stuck)} view(s) not converged ({ids}; {UNCONVERGED_RULE}); median rot. err "
+            f"{metrics['rot_err_deg_median']:.3f} deg, trans. err {metrics['trans_err_x100_median']:.3f}")
 
 
 def evaluate_poses(c2w_est: torch.Tensor, c2w_gt: torch.Tensor) -> dict:

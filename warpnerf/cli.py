@@ -96,13 +96,11 @@ def _summary(m: dict) -> str:
              f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
     if "rot_err_deg" in m:
         parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
-        stuck = m.get("unconverged_views") or []
-        if stuck:  # one view far off dominates the means: say so, with the medians
-            from .cameras import UNCONVERGED_RULE
+        from .cameras import describe_unconverged
 
-            parts.append(f"{len(stuck)} view(s) not converged ({', '.join(map(str, stuck[:8]))}"
-                         f"{', ...' if len(stuck) > 8 else ''}; {UNCONVERGED_RULE}): "
-                         f"median rot err {m['rot_err_deg_median']:.3f} deg, trans x100 {m['trans_err_x100_median']:.3f}")
+        stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so
+        if stuck:
+            parts.append(stuck)
     return "; ".join(parts)
 
 

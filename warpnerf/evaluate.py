@@ -54,19 +54,20 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
             py = torch.randint(0, views.height, idx.shape, generator=gen, device=trainer.device)
             px = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
             opt.zero_grad(set_to_none=True)
+            batch = PixelBatch(view=idx, row=py, col=px, rgb=images[idx, py, px], weight=None)
+            u, v = batch.u, batch.v
             # the renderer takes at most sample_budget samples per call and returns the rays past it
             # as background: render in as many calls as the budget needs, so every view's rays count
             # (one call for 25 lego views x 1024 rays left the last views' rays unrendered, and those
             # poses unrefined or drifting)
             first = 0
             while first < idx.shape[0]:
-                k, row, col = idx[first:], py[first:], px[first:]
-                px_batch = PixelBatch(view=k, row=row, col=col, rgb=images[k, row, col], weight=None)
-                o, d = pixel_rays(corr.for_rays(c2w, k), px_batch.u, px_batch.v, views.focal, views.cx, views.cy)
+                o, d = pixel_rays(corr.for_rays(c2w, idx[first:]), u[first:], v[first:], views.focal, views.cx, views.cy)
                 out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
                 n = max(out.n_rays, 1)  # the budget holds one ray's samples (render_image does the same)
                 # sum of per-view means: each view's gradient is what refining it alone would see
-                loss = torch.nn.functional.mse_loss(out.rgb[:n], px_batch.rgb[:n], reduction="sum") / (3 * rays_per_step)
+                target = batch.rgb[first:first + n]
+                loss = torch.nn.functional.mse_loss(out.rgb[:n], target, reduction="sum") / (3 * rays_per_step)
                 loss.backward()
                 first += n
             opt.step()

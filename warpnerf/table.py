@@ -53,15 +53,13 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
             cells.append(" / ".join(fmt.format(barf[k]) for k, _, fmt in cols) if barf else "")
         lines.append("| " + " | ".join(cells) + " |")
     if task == "pose":  # a view stuck far off dominates a mean: name it, with the medians
+        from .cameras import describe_unconverged
+
         for scene, arms in rows.items():
             for arm, m in arms.items():
-                stuck = m.get("unconverged_views")
+                stuck = describe_unconverged(m)
                 if stuck:
-                    from .cameras import UNCONVERGED_RULE
-
-                    lines.append(f"\n{scene} {arm} G2fR: {len(stuck)} view(s) not converged ({', '.join(map(str, stuck))}; "
-                                 f"{UNCONVERGED_RULE}); median rot. err {m['rot_err_deg_median']:.3f} deg, "
-                                 f"trans. err {m['trans_err_x100_median']:.3f}")
+                    lines.append(f"\n{scene} {arm} G2fR: {stuck}")
     return "\n".join(lines)
 
 
