@@ -169,3 +169,14 @@ def test_summary_names_unconverged_pose_views():
     assert "(0, 1, 2, 3, 4, 5, 6, 7, ...; rot. err" in _summary(m)
     m["unconverged_views"] = []
     assert "not converged" not in _summary(m)
+
+
+def test_summary_names_reregistered_views():
+    from warpnerf.cli import _summary
+
+    m = {"psnr": 33.1, "ssim": 0.98, "iters": 3000, "train_seconds": 300.0, "render_seconds_per_view": 0.3,
+         "rot_err_deg": 0.066, "trans_err_x100": 0.462, "unconverged_views": [],
+         "reregistered": [{"view": 14, "step": 1000}, {"view": 79, "step": 1000}]}
+    assert _summary(m).endswith("; re-registered view(s) 14, 79 at step 1000")
+    m["reregistered"] = []
+    assert "re-registered" not in _summary(m)

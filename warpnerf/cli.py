@@ -101,6 +101,9 @@ def _summary(m: dict) -> str:
         stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so
         if stuck:
             parts.append(stuck)
+        found = m.get("reregistered") or []
+        if found:
+            parts.append(f"re-registered view(s) {', '.join(str(r['view']) for r in found)} at step {found[0]['step']}")
     return "; ".join(parts)
 
 

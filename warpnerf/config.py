@@ -143,6 +143,8 @@ class TrainConfig:
     pose_lr_final: float = 1e-5  # pose: lr at the last step (exponential)
     pose_lr_by_noise: bool = True  # pose: scale both rates by min(max(noise sigmas) / 0.15, 1), 0.15 being the sigma they are tuned at (Adam moves ~lr per step)
     pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
+    pose_reregister_at: float = 0.0  # pose: at this fraction of the run, search again for views left in a wrong basin (warpnerf.reregister; not in the paper); 0 = off
+    pose_reregister_ratio: float = 10.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's
     # --- evaluation and output ---
     eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
@@ -342,6 +344,10 @@ def validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, key)
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a positive finite number, got {value}")
+    if not 0.0 <= cfg.pose_reregister_at < 1.0:
+        raise ConfigError(f"pose_reregister_at must be in [0, 1) (a fraction of the run; 0 = off), got {cfg.pose_reregister_at}")
+    if not (cfg.pose_reregister_ratio > 1.0 and math.isfinite(cfg.pose_reregister_ratio)):
+        raise ConfigError(f"pose_reregister_ratio must be a finite number > 1, got {cfg.pose_reregister_ratio}")
     if not 0.0 < cfg.occ_uniform_fraction <= 1.0:
         raise ConfigError(f"occ_uniform_fraction must be in (0, 1], got {cfg.occ_uniform_fraction}")
     if not math.isfinite(cfg.cp_density_shift):

@@ -131,6 +131,7 @@ class PoseTask(Task):
                                          "rot_err_deg_unaligned": []}
         self.initial: dict = {}
         self.final: dict = {}
+        self.reregistered: list[dict] = []  # warpnerf.reregister's report, one dict per view searched for
 
     def caveat(self, scene: Scene) -> Optional[str]:
         # measured on fern (README, "Open work"): Procrustes on nearly planar camera centres
@@ -170,12 +171,13 @@ class PoseTask(Task):
 
     def state_dict(self) -> dict:
         return {"correction": self.correction.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "history": self.history}
+                "history": self.history, "reregistered": self.reregistered}
 
     def load_state_dict(self, state: dict) -> None:
         self.correction.load_state_dict(state["correction"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.history = {k: list(v) for k, v in state["history"].items()}
+        self.reregistered = list(state.get("reregistered", []))
 
     def current_c2w(self) -> torch.Tensor:
         return self.correction(self.noisy_c2w)
@@ -204,7 +206,14 @@ class PoseTask(Task):
         self.history.setdefault("trans_offset_cam_x100", []).append(ev["trans_offset_cam_x100"])
         return ev
 
+    def reregister_step(self) -> int:
+        """The step after which views are searched for again (``pose_reregister_at``); -1 when off."""
+        at = self.cfg.pose_reregister_at
+        return max(int(round(at * self.cfg.iters)) - 1, 0) if at > 0 else -1
+
     def after_step(self, trainer: "Trainer", step: int) -> dict:
+        if step == self.reregister_step():
+            self._reregister(trainer, step + 1)
         # same cadence as the trainer's progress line, so the bar shows the errors
         if step % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
             ev = self._record(step + 1)
@@ -212,6 +221,24 @@ class PoseTask(Task):
                 return {"rot_ua": f"{ev['rot_err_deg_unaligned']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
             return {"rot": f"{ev['rot_err_deg']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
         return {}
+
+    def _reregister(self, trainer: "Trainer", step: int) -> None:
+        from tqdm.auto import tqdm
+
+        from .reregister import reregister_views
+
+        found = reregister_views(trainer, self.correction, self.noisy_c2w, self.optimizer, step,
+                                 self.cfg.pose_reregister_ratio, self.cfg.pose_lr * self.lr_scale)
+        self.reregistered.extend(found)
+        if found:
+            tqdm.write(f"step {step}: re-registered {len(found)} view(s) whose loss was > "
+                       f"{self.cfg.pose_reregister_ratio:g}x the median view's: "
+                       + ", ".join(f"{r['view']} ({r['loss_ratio_before']:.1f}x -> {r['loss_ratio_after']:.1f}x)"
+                                   for r in found)
+                       + f" in {sum(r['seconds'] for r in found):.0f} s")
+        else:
+            tqdm.write(f"step {step}: no view's loss is > {self.cfg.pose_reregister_ratio:g}x the median view's; "
+                       "nothing to re-register")
 
     def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
         """Test poses mapped into the optimised frame by the training-camera Sim(3) alignment, then
@@ -255,6 +282,7 @@ class PoseTask(Task):
             "pose_noise_rot": self.sigmas[0],
             "pose_noise_trans": self.sigmas[1],
             "pose_error_history": self.history,
+            "reregistered": self.reregistered,
         }
 
     def artifacts(self, trainer: "Trainer", out_dir: str) -> None:

@@ -1,0 +1,101 @@
+"""Re-registration of training views left in a wrong basin (warpnerf/reregister.py), on a field
+trained with known poses: the search must bring a far-off view back and leave the others alone."""
+
+import math
+
+import pytest
+import torch
+
+from test_trainer import make_trainer
+from warpnerf.cameras import PoseCorrection, perturb_poses, rotation_error_deg
+from warpnerf.reregister import reregister_views, view_losses
+
+
+@pytest.fixture(scope="module")
+def trained():
+    trainer = make_trainer(iters=300, seed=3)
+    trainer.fit(progress=False)
+    return trainer
+
+
+def noisy_setup(trainer, far_view: int):
+    """Noisy starting poses (sigma 0.15) whose corrections undo the noise exactly for every view but
+    ``far_view``, which sits at twice its noise (the way a view moves off into a wrong basin)."""
+    gt = trainer.train_c2w
+    noisy, xi = perturb_poses(gt, 0.15, 0.15, generator=torch.Generator().manual_seed(5), return_noise=True)
+    correction = PoseCorrection(gt.shape[0])
+    with torch.no_grad():
+        correction.delta.copy_(-xi)
+        correction.delta[far_view] = xi[far_view]
+    optimizer = torch.optim.Adam(correction.parameters(), lr=3e-3)
+    correction.delta.grad = torch.ones_like(correction.delta)
+    optimizer.step()  # moments exist for every view
+    with torch.no_grad():
+        correction.delta.copy_(-xi)
+        correction.delta[far_view] = xi[far_view]
+    return gt, noisy, correction, optimizer
+
+
+def test_a_far_off_view_is_found_by_its_loss_and_registered_again(trained):
+    far = 5
+    gt, noisy, correction, optimizer = noisy_setup(trained, far)
+    before = rotation_error_deg(correction(noisy).detach()[:, :, :3], gt[:, :, :3])
+    assert before[far] > 10.0 and float(before[torch.arange(len(gt)) != far].max()) < 0.1, before
+    others = correction.delta.detach().clone()
+    found = reregister_views(trained, correction, noisy, optimizer, 300, ratio=10.0, lr=3e-3)
+    assert [r["view"] for r in found] == [far], found
+    assert found[0]["loss_ratio_before"] > 10.0 and found[0]["loss_ratio_after"] < 3.0, found
+    assert found[0]["rounds"] >= 1, found  # refining in place did not bring it back: the search did (1 round)
+    after = rotation_error_deg(correction(noisy).detach()[:, :, :3], gt[:, :, :3])
+    # 32-pixel images: one pixel is ~1.5 deg
+    assert after[far] < 3.0, (before[far], after[far])
+    keep = torch.arange(len(gt)) != far
+    assert torch.equal(correction.delta.detach()[keep], others[keep])  # the other views are untouched
+    state = optimizer.state[correction.delta]
+    assert float(state["exp_avg"][far].abs().sum()) == 0.0 and float(state["exp_avg_sq"][far].abs().sum()) == 0.0
+    assert float(state["exp_avg"][keep].abs().min()) > 0.0  # only the re-registered view's moments are cleared
+    assert all(p.requires_grad for p in trained.field.parameters())  # the field is unfrozen afterwards
+
+
+def test_nothing_is_flagged_when_every_view_is_registered(trained):
+    gt, noisy, correction, optimizer = noisy_setup(trained, 0)
+    with torch.no_grad():
+        correction.delta[0] = -perturb_poses(gt, 0.15, 0.15, generator=torch.Generator().manual_seed(5),
+                                             return_noise=True)[1][0]
+    losses = view_losses(trained, correction(noisy).detach(), trained.level_weights(300), seed=1)
+    assert float(losses.max()) < 10.0 * float(losses.median()), losses
+    delta = correction.delta.detach().clone()
+    assert reregister_views(trained, correction, noisy, optimizer, 300, ratio=10.0, lr=3e-3) == []
+    assert torch.equal(correction.delta.detach(), delta)
+
+
+def test_the_pose_task_searches_once_at_its_fraction_of_the_run(monkeypatch, capsys):
+    import warpnerf.reregister as rr
+
+    calls = []
+
+    def fake(trainer, correction, start_c2w, optimizer, step, ratio, lr):
+        calls.append((trainer.step, step, ratio, lr))
+        return [{"view": 2, "step": step, "loss_ratio_before": 14.0, "loss_ratio_after": 1.5, "rounds": 2,
+                 "seconds": 3.0}]
+
+    monkeypatch.setattr(rr, "reregister_views", fake)
+    trainer = make_trainer("pose", iters=40, pose_reregister_at=0.25, pose_reregister_ratio=8.0, pose_lr=2e-3)
+    trainer.fit(progress=False)
+    # after step 10 of 40 (trainer.step is still the step that just ran), at the task's pose rate
+    assert calls == [(9, 10, 8.0, pytest.approx(2e-3 * trainer.task.lr_scale))]
+    assert "step 10: re-registered 1 view(s) whose loss was > 8x the median view's: 2 (14.0x -> 1.5x) in 3 s" \
+        in capsys.readouterr().out
+    assert [r["view"] for r in trainer.task.reregistered] == [2]
+    state = trainer.task.state_dict()
+    assert state["reregistered"][0]["view"] == 2  # checkpoints carry the report
+
+
+def test_reregistration_is_off_by_default_and_checked():
+    from warpnerf.config import ConfigError, build_config
+
+    assert build_config("pose").pose_reregister_at == 0.0
+    with pytest.raises(ConfigError, match="pose_reregister_at must be in"):
+        build_config("pose", overrides={"pose_reregister_at": 1.0})
+    with pytest.raises(ConfigError, match="pose_reregister_ratio must be"):
+        build_config("pose", overrides={"pose_reregister_ratio": 0.5})
