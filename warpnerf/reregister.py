@@ -34,13 +34,13 @@ if TYPE_CHECKING:
     from .cameras import PoseCorrection
     from .trainer import Trainer
 
-PROBE_PIXELS = 512  # pixels per view: the loss that flags a view, refinement and the final comparison
+PROBE_PIXELS = 1024  # pixels per view: the loss that flags a view, refinement and the final comparison
 SCREEN_PIXELS = 128  # pixels per drawn pose in the search's first screening
 DRAWS = 2000  # poses drawn per search round
 TOP = 8  # drawn poses refined per round
-REFINE_STEPS = 60  # Adam steps of each refinement (lr pose_lr -> pose_lr / 10)
+REFINE_STEPS = 100  # Adam steps of each refinement (lr pose_lr -> pose_lr / 10)
 OK_RATIO = 3.0  # a view is registered once its loss is below this x the median view's
-ROUNDS = 6
+ROUNDS = 8
 SHRINK = 0.4  # the draw's spread after a round that made progress
 
 
