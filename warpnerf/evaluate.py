@@ -8,10 +8,11 @@ to the same numbers.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Iterator, Optional
 
 import numpy as np
 import torch
@@ -24,6 +25,19 @@ from .renderer import pixel_rays
 if TYPE_CHECKING:
     from .trainer import Trainer
 
+
+
+@contextlib.contextmanager
+def frozen(module: torch.nn.Module) -> Iterator[None]:
+    """``module``'s parameters take no gradient inside the block (pose refinement against a fixed
+    field: only the poses' graph is built) and take one again afterwards, also on an error."""
+    for p in module.parameters():
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in module.parameters():
+            p.requires_grad_(True)
 
 
 def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
@@ -45,9 +59,7 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
     images = views.images.to(trainer.device)
     gen = torch.Generator(device=trainer.device).manual_seed(trainer.cfg.seed + 7)
     idx = torch.arange(n_views, device=trainer.device).repeat_interleave(rays_per_step)
-    for p in trainer.field.parameters():
-        p.requires_grad_(False)
-    try:
+    with frozen(trainer.field):
         for i in range(n_steps):
             for g in opt.param_groups:
                 g["lr"] = exp_decay(trainer.cfg.pose_lr, trainer.cfg.pose_lr_final, i / max(n_steps - 1, 1))
@@ -71,9 +83,6 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
                 loss.backward()
                 first += n
             opt.step()
-    finally:
-        for p in trainer.field.parameters():
-            p.requires_grad_(True)
     with torch.no_grad():
         return corr(c2w)
 

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .config import exp_decay
+from .evaluate import frozen
 from .renderer import pixel_rays
 
 if TYPE_CHECKING:
@@ -167,9 +168,7 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
     spread = (deltas[others] if int(others.sum()) > 1 else deltas).std(0)
     gen = torch.Generator().manual_seed(seed + 1)
     results = []
-    for p in trainer.field.parameters():
-        p.requires_grad_(False)
-    try:
+    with frozen(trainer.field):
         for v in flagged:
             t0 = time.perf_counter()
             search = _ViewSearch(trainer, start_c2w[v:v + 1], probe_pixels(trainer, v, PROBE_PIXELS, gen), weights,
@@ -197,7 +196,4 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
             results.append({"view": v, "step": step, "loss_ratio_before": float(losses[v]) / median,
                             "loss_ratio_after": best_loss / median, "rounds": rounds,
                             "seconds": time.perf_counter() - t0})
-    finally:
-        for p in trainer.field.parameters():
-            p.requires_grad_(True)
     return results
