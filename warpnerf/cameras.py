@@ -221,6 +221,12 @@ def _apply_twist(c2w: torch.Tensor, E: torch.Tensor, frame: str) -> torch.Tensor
     raise ValueError(f"frame must be 'world' or 'camera', got {frame!r}")
 
 
+def apply_correction(c2w: torch.Tensor, delta: torch.Tensor, frame: str = "world") -> torch.Tensor:
+    """c2w (..., 3, 4) corrected by se(3) twists ``delta`` (..., 6) as :class:`PoseCorrection` does:
+    ``w2c @ exp(delta)`` (frame="world") or ``exp(delta) @ w2c`` ("camera")."""
+    return _apply_twist(c2w, se3_exp(delta.to(c2w.dtype)), frame)
+
+
 def sample_se3_noise(
     n: int,
     sigma_rot: float,
@@ -293,8 +299,7 @@ class PoseCorrection(torch.nn.Module):
             # index_select, not delta[idx]: its backward sums a camera's rays in a fixed order on
             # CPU (see warpnerf.renderer.gather_rows), so pose training is bit-reproducible
             d = self.delta.index_select(0, idx.reshape(-1)).reshape(*idx.shape, self.delta.shape[1])
-        E = se3_exp(d.to(c2w_noisy.dtype))
-        return _apply_twist(c2w_noisy, E, self.frame)
+        return apply_correction(c2w_noisy, d, self.frame)
 
     def for_rays(self, c2w_noisy: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Corrected c2w (B, 3, 4) of views ``idx`` (B,), e.g. one per ray, from the (N, 3, 4) noisy

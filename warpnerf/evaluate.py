@@ -20,7 +20,6 @@ import torch
 from . import metrics as M
 from .config import exp_decay
 from .data.scene import Views
-from .renderer import pixel_rays
 
 if TYPE_CHECKING:
     from .trainer import Trainer
@@ -67,21 +66,15 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
             px = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
             opt.zero_grad(set_to_none=True)
             batch = PixelBatch(view=idx, row=py, col=px, rgb=images[idx, py, px], weight=None)
-            u, v = batch.u, batch.v
-            # the renderer takes at most sample_budget samples per call and returns the rays past it
-            # as background: render in as many calls as the budget needs, so every view's rays count
-            # (one call for 25 lego views x 1024 rays left the last views' rays unrendered, and those
-            # poses unrefined or drifting)
-            first = 0
-            while first < idx.shape[0]:
-                o, d = pixel_rays(corr.for_rays(c2w, idx[first:]), u[first:], v[first:], views.focal, views.cx, views.cy)
-                out = trainer.renderer.render_rays(o.contiguous(), d.contiguous(), weights)
-                n = max(out.n_rays, 1)  # the budget holds one ray's samples (render_image does the same)
+            # every view's rays are rendered, in as many calls as the sample budget needs (one call
+            # for 25 lego views x 1024 rays left the last views' rays unrendered, those poses drifting)
+            pixels = trainer.renderer.render_pixels(lambda first: corr.for_rays(c2w, idx[first:]), batch.u, batch.v,
+                                                   (views.focal, views.cx, views.cy), weights)
+            for first, rgb in pixels:
                 # sum of per-view means: each view's gradient is what refining it alone would see
-                target = batch.rgb[first:first + n]
-                loss = torch.nn.functional.mse_loss(out.rgb[:n], target, reduction="sum") / (3 * rays_per_step)
+                target = batch.rgb[first:first + rgb.shape[0]]
+                loss = torch.nn.functional.mse_loss(rgb, target, reduction="sum") / (3 * rays_per_step)
                 loss.backward()
-                first += n
             opt.step()
     with torch.no_grad():
         return corr(c2w)

@@ -159,6 +159,24 @@ class Renderer:
         return RenderOutput(color, opacity, depth / opacity.clamp_min(1e-6), n_samples, n_marched,
                             int(ray.shape[0]), dist)
 
+    def render_pixels(self, c2w, u: torch.Tensor, v: torch.Tensor, intrinsics, level_weights=None):
+        """Render pixel positions (u, v) in as many ``render_rays`` calls as the sample budget needs
+        (a call returns the rays past the budget as background: every ray here is rendered).
+
+        c2w: (B, 3, 4) camera per pixel, or a callable ``first -> (B - first, 3, 4)`` for the pixels
+        from ``first`` on, for a pose graph that a caller's ``backward`` frees between chunks.
+        intrinsics: (focal, cx, cy). Yields ``(first, rgb)``: the (n, 3) colours of pixels
+        ``first .. first + n``; a caller may backpropagate each chunk's loss before the next.
+        """
+        cameras = c2w if callable(c2w) else (lambda first: c2w[first:])
+        first = 0
+        while first < u.shape[0]:
+            o, d = pixel_rays(cameras(first), u[first:], v[first:], *intrinsics)
+            out = self.render_rays(o.contiguous(), d.contiguous(), level_weights)
+            n = max(out.n_rays, 1)  # the budget holds at least one ray's samples
+            yield first, out.rgb[:n]
+            first += n
+
     def _points(self, o: torch.Tensor, d: torch.Tensor, packed: PackedSamples):
         """Ray index (S,) int64 and field-space position (S, 3) of every packed sample's midpoint."""
         ray = packed.ray_indices.long()

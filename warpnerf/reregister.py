@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from .cameras import apply_correction
 from .config import exp_decay
 from .evaluate import frozen
-from .renderer import pixel_rays
 
 if TYPE_CHECKING:
     from .cameras import PoseCorrection
@@ -65,15 +65,13 @@ def probe_pixels(trainer: "Trainer", view: int, n: int, gen: torch.Generator):
 
 def _squared_errors(trainer: "Trainer", c2w_rays: torch.Tensor, rows, cols, target, weights) -> torch.Tensor:
     """(n,) mean squared colour error of each ray (no gradient), rendered within the sample budget."""
-    o, d = pixel_rays(c2w_rays, cols.float() + 0.5, rows.float() + 0.5, trainer.views.focal, trainer.views.cx,
-                      trainer.views.cy)
-    err = torch.empty(o.shape[0], device=o.device)
-    first = 0
-    while first < o.shape[0]:
-        out = trainer.renderer.render_rays(o[first:].contiguous(), d[first:].contiguous(), weights)
-        n = max(out.n_rays, 1)
-        err[first:first + n] = (out.rgb[:n] - target[first:first + n]).square().mean(-1)
-        first += n
+    views = trainer.views
+    err = torch.empty(rows.shape[0], device=target.device)
+    pixels = trainer.renderer.render_pixels(c2w_rays, cols.float() + 0.5, rows.float() + 0.5,
+                                            (views.focal, views.cx, views.cy), weights)
+    for first, rgb in pixels:
+        n = rgb.shape[0]
+        err[first:first + n] = (rgb - target[first:first + n]).square().mean(-1)
     return err
 
 
@@ -97,10 +95,8 @@ class _ViewSearch:
         self.rows, self.cols, self.rgb = pixels
 
     def poses(self, deltas: torch.Tensor) -> torch.Tensor:
-        from .cameras import _apply_twist, se3_exp
-
         k = deltas.shape[0]
-        return _apply_twist(self.start.double().expand(k, 3, 4), se3_exp(deltas.double()), self.frame).float()
+        return apply_correction(self.start.double().expand(k, 3, 4), deltas.double(), self.frame).float()
 
     @torch.no_grad()
     def losses(self, deltas: torch.Tensor, n_pixels: int, chunk: int = 256) -> torch.Tensor:
@@ -133,14 +129,11 @@ class _ViewSearch:
             for g in opt.param_groups:
                 g["lr"] = exp_decay(lr, 0.1 * lr, i / max(steps - 1, 1))
             opt.zero_grad(set_to_none=True)
-            first = 0
-            while first < idx.shape[0]:  # as many render calls as the sample budget needs
-                o, d = pixel_rays(corr.for_rays(base, idx[first:]), u[first:], v[first:], views.focal, views.cx, views.cy)
-                out = self.trainer.renderer.render_rays(o.contiguous(), d.contiguous(), self.weights)
-                m = max(out.n_rays, 1)
-                loss = (out.rgb[:m] - rgb[first:first + m]).square().sum() / (3 * n)
+            pixels = self.trainer.renderer.render_pixels(lambda first: corr.for_rays(base, idx[first:]), u, v,
+                                                         (views.focal, views.cx, views.cy), self.weights)
+            for first, out in pixels:  # every ray rendered, in as many calls as the sample budget needs
+                loss = (out - rgb[first:first + out.shape[0]]).square().sum() / (3 * n)
                 loss.backward()
-                first += m
             opt.step()
         refined = corr.delta.detach().clone()
         return refined, self.losses(refined, n)
