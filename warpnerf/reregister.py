@@ -143,7 +143,8 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                      optimizer: torch.optim.Optimizer, step: int, ratio: float, lr: float) -> list[dict]:
     """Find the views whose loss exceeds ``ratio`` x the median view's and register them again
     (module docstring). Changes ``correction`` and ``optimizer``'s moments of those views in place;
-    returns one dict per flagged view: view, loss ratios before / after, rounds searched, seconds."""
+    returns one dict per flagged view: view, loss ratios before / after, rounds searched, the best
+    ratio after refining in place and after each round (``ratio_by_round``), seconds."""
     seed = trainer.cfg.seed * 1000 + step
     weights = trainer.level_weights(step)
     with torch.no_grad():
@@ -169,6 +170,7 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
             best, best_loss = search.refine(deltas[v:v + 1].clone(), REFINE_STEPS, lr)
             best, best_loss = best[0], float(best_loss[0])
             centre, scale, rounds = torch.zeros_like(spread), spread.clone(), 0
+            trace = [best_loss / median]  # the best loss ratio after refining in place, then after each round
             while best_loss > OK_RATIO * median and rounds < ROUNDS:
                 rounds += 1
                 draws = centre + torch.randn(DRAWS, 6, generator=gen).to(spread.device) * scale
@@ -180,6 +182,7 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                     best, best_loss = refined[i], float(refined_loss[i])
                 # progress: look closer around the new best; none: start again from the whole spread
                 centre, scale = (best, scale * SHRINK) if progress else (torch.zeros_like(spread), spread.clone())
+                trace.append(best_loss / median)
             with torch.no_grad():
                 correction.delta[v] = best
             state = optimizer.state.get(correction.delta, {})
@@ -188,5 +191,5 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                     state[key][v] = 0.0
             results.append({"view": v, "step": step, "loss_ratio_before": float(losses[v]) / median,
                             "loss_ratio_after": best_loss / median, "rounds": rounds,
-                            "seconds": time.perf_counter() - t0})
+                            "ratio_by_round": trace, "seconds": time.perf_counter() - t0})
     return results
