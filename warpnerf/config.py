@@ -144,7 +144,7 @@ class TrainConfig:
     pose_lr_by_noise: bool = True  # pose: scale both rates by min(max(noise sigmas) / 0.15, 1), 0.15 being the sigma they are tuned at (Adam moves ~lr per step)
     pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
     pose_reregister_at: float = 0.0  # pose: at this fraction of the run, search again for views left in a wrong basin (warpnerf.reregister; not in the paper); 0 = off
-    pose_reregister_ratio: float = 10.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's
+    pose_reregister_ratio: float = 5.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's (README: 10 missed views on Mtrf)
     # --- evaluation and output ---
     eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
