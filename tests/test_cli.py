@@ -178,5 +178,7 @@ def test_summary_names_reregistered_views():
          "rot_err_deg": 0.066, "trans_err_x100": 0.462, "unconverged_views": [],
          "reregistered": [{"view": 14, "step": 1000}, {"view": 79, "step": 1000}]}
     assert _summary(m).endswith("; re-registered view(s) 14, 79 at step 1000")
+    m["reregistered"].append({"view": 43, "step": 2000})  # a second pass
+    assert _summary(m).endswith("; re-registered view(s) 14, 79 at step 1000; 43 at step 2000")
     m["reregistered"] = []
     assert "re-registered" not in _summary(m)

@@ -94,6 +94,22 @@ def test_the_pose_task_searches_once_at_its_fraction_of_the_run(monkeypatch, cap
     assert state["reregistered"][0]["view"] == 2  # checkpoints carry the report
 
 
+def test_passes_search_again_at_multiples_of_the_fraction(monkeypatch):
+    """``pose_reregister_passes``: views that only stand out once the field is sharp (mic, Mtrf seed 1:
+    not above 5x at a third of the run, 22-38x at the end) are looked for again at 2x the fraction."""
+    import warpnerf.reregister as rr
+
+    calls = []
+    monkeypatch.setattr(rr, "reregister_views", lambda trainer, c, s, o, step, ratio, lr: calls.append(step) or [
+        {"view": step % 7, "step": step, "loss_ratio_before": 9.0, "loss_ratio_after": 1.0, "rounds": 0,
+         "seconds": 1.0}])
+    trainer = make_trainer("pose", iters=30, pose_reregister_at=0.3, pose_reregister_passes=3)
+    assert trainer.task.reregister_steps() == [8, 17, 26]
+    trainer.fit(progress=False)
+    assert calls == [9, 18, 27]
+    assert [(r["view"], r["step"]) for r in trainer.task.reregistered] == [(2, 9), (4, 18), (6, 27)]
+
+
 def test_reregistration_is_off_by_default_and_checked():
     from warpnerf.config import ConfigError, build_config
 
@@ -102,3 +118,7 @@ def test_reregistration_is_off_by_default_and_checked():
         build_config("pose", overrides={"pose_reregister_at": 1.0})
     with pytest.raises(ConfigError, match="pose_reregister_ratio must be"):
         build_config("pose", overrides={"pose_reregister_ratio": 0.5})
+    for passes, at in ((0, 0.3), (3, 0.34)):  # no pass, or the last one past the end of the run
+        with pytest.raises(ConfigError, match="pose_reregister_passes must be"):
+            build_config("pose", overrides={"pose_reregister_passes": passes, "pose_reregister_at": at})
+    assert build_config("pose", overrides={"pose_reregister_passes": 2, "pose_reregister_at": 0.3333}).pose_reregister_passes == 2

@@ -103,7 +103,9 @@ def _summary(m: dict) -> str:
             parts.append(stuck)
         found = m.get("reregistered") or []
         if found:
-            parts.append(f"re-registered view(s) {', '.join(str(r['view']) for r in found)} at step {found[0]['step']}")
+            steps = sorted({r["step"] for r in found})
+            parts.append("re-registered view(s) " + "; ".join(
+                f"{', '.join(str(r['view']) for r in found if r['step'] == s)} at step {s}" for s in steps))
     return "; ".join(parts)
 
 

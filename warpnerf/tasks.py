@@ -206,13 +206,16 @@ class PoseTask(Task):
         self.history.setdefault("trans_offset_cam_x100", []).append(ev["trans_offset_cam_x100"])
         return ev
 
-    def reregister_step(self) -> int:
-        """The step after which views are searched for again (``pose_reregister_at``); -1 when off."""
+    def reregister_steps(self) -> list[int]:
+        """The steps after which views are searched for again: at ``pose_reregister_at`` of the run
+        and its multiples, ``pose_reregister_passes`` in all; none when off."""
         at = self.cfg.pose_reregister_at
-        return max(int(round(at * self.cfg.iters)) - 1, 0) if at > 0 else -1
+        if at <= 0:
+            return []
+        return [max(int(round(k * at * self.cfg.iters)) - 1, 0) for k in range(1, self.cfg.pose_reregister_passes + 1)]
 
     def after_step(self, trainer: "Trainer", step: int) -> dict:
-        if step == self.reregister_step():
+        if step in self.reregister_steps():
             self._reregister(trainer, step + 1)
         # same cadence as the trainer's progress line, so the bar shows the errors
         if step % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
