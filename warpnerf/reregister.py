@@ -6,9 +6,10 @@ Not part of G²fR or BARF: an opt-in addition to the pose task (``pose_reregiste
 On mic, 1-4 of the 100 views of a run stay 5-30 deg off while the others converge to the paper's
 level, and those few make the mean error (0.5-0.7 deg instead of ~0.05). By a third of the run their
 photometric loss is 10-40x the median view's (a converged view: below 9x), so the loss finds them
-without the ground truth. At ``pose_reregister_at`` of the run each view above
-``pose_reregister_ratio`` (5) x the median is (a slow but converging view flagged at 5-9x is brought in
-by 1. below in a few seconds; three of Mtrf's five stuck views on mic sat at 5-10x, which 10 missed)
+without the ground truth (three of Mtrf's five stuck views on mic sat at 5-10x, hence the default
+ratio of 5; a slow but converging view flagged at 5-9x comes in by step 1 below in a few seconds).
+At ``pose_reregister_at`` of the run (and its multiples, ``pose_reregister_passes``: PoseTask) each
+view above ``pose_reregister_ratio`` x the median is
 
 1. refined where it is, the field frozen (``REFINE_STEPS`` Adam steps on ``PROBE_PIXELS`` pixels);
 2. if its loss is still above ``OK_RATIO`` x the median, searched for: poses drawn the way the noise
