@@ -22,6 +22,7 @@ from .config import exp_decay
 from .data.scene import Views
 
 if TYPE_CHECKING:
+    from .cameras import PoseCorrection
     from .trainer import Trainer
 
 
@@ -39,43 +40,54 @@ def frozen(module: torch.nn.Module) -> Iterator[None]:
             p.requires_grad_(True)
 
 
+def refine_corrections(trainer: "Trainer", corr: "PoseCorrection", c2w: torch.Tensor, pixels, intrinsics,
+                       weights, steps: int, lr: float, lr_final: float) -> None:
+    """``steps`` Adam steps on ``corr``, the se(3) corrections of the (k, 3, 4) poses ``c2w``, against a
+    frozen field (the caller freezes it). ``pixels(i)`` gives step i's rays as (row of ``c2w``, u, v,
+    target rgb), the same number for every row; ``intrinsics`` is (focal, cx, cy). The loss is the sum
+    over rows of each row's mean squared error, so rows are independent: each row's gradient is what
+    refining it alone would see. The rate decays exponentially from ``lr`` to ``lr_final``: at a
+    constant rate the last steps leave each pose jittering by about one rate."""
+    opt = torch.optim.Adam(corr.parameters(), lr=lr)
+    for i in range(steps):
+        for g in opt.param_groups:
+            g["lr"] = exp_decay(lr, lr_final, i / max(steps - 1, 1))
+        idx, u, v, rgb = pixels(i)
+        per_row = idx.shape[0] // c2w.shape[0]
+        opt.zero_grad(set_to_none=True)
+        # every ray rendered, in as many calls as the sample budget needs (one call for 25 lego views
+        # x 1024 rays left the last views' rays unrendered, those poses drifting)
+        chunks = trainer.renderer.render_pixels(lambda first: corr.for_rays(c2w, idx[first:]), u, v, intrinsics, weights)
+        for first, out in chunks:
+            loss = (out - rgb[first:first + out.shape[0]]).square().sum() / (3 * per_row)
+            loss.backward()
+        opt.step()
+
+
 def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
     """Photometric refinement of (N, 3, 4) poses against ``views``' images with the field frozen
     (BARF's test-time pose optimisation). Returns refined (N, 3, 4) poses.
 
-    All views are refined together: every step renders ``rays_per_step`` random pixels of each
-    view and takes one Adam step on the per-view corrections (rows are independent, so this
-    equals refining each view alone, with fewer launches). ``pose_refine_steps`` steps, learning
-    rate decaying exponentially from ``pose_lr`` to ``pose_lr_final`` as in training: at a
-    constant rate the last steps leave each pose jittering by about one learning rate."""
+    All views are refined together (:func:`refine_corrections`): every step renders
+    ``rays_per_step`` random pixels of each view, ``pose_refine_steps`` steps from ``pose_lr`` to
+    ``pose_lr_final`` as in training."""
     from .cameras import PoseCorrection
-    from .trainer import PixelBatch
 
-    n_views, n_steps = c2w.shape[0], trainer.cfg.pose_refine_steps
-    weights = trainer.level_weights(trainer.cfg.iters)
+    n_views = c2w.shape[0]
     corr = PoseCorrection(n_views).to(trainer.device)
-    opt = torch.optim.Adam(corr.parameters(), lr=trainer.cfg.pose_lr)
     images = views.images.to(trainer.device)
     gen = torch.Generator(device=trainer.device).manual_seed(trainer.cfg.seed + 7)
     idx = torch.arange(n_views, device=trainer.device).repeat_interleave(rays_per_step)
+
+    def pixels(_step):
+        rows = torch.randint(0, views.height, idx.shape, generator=gen, device=trainer.device)
+        cols = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
+        return idx, cols.float() + 0.5, rows.float() + 0.5, images[idx, rows, cols]
+
     with frozen(trainer.field):
-        for i in range(n_steps):
-            for g in opt.param_groups:
-                g["lr"] = exp_decay(trainer.cfg.pose_lr, trainer.cfg.pose_lr_final, i / max(n_steps - 1, 1))
-            py = torch.randint(0, views.height, idx.shape, generator=gen, device=trainer.device)
-            px = torch.randint(0, views.width, idx.shape, generator=gen, device=trainer.device)
-            opt.zero_grad(set_to_none=True)
-            batch = PixelBatch(view=idx, row=py, col=px, rgb=images[idx, py, px], weight=None)
-            # every view's rays are rendered, in as many calls as the sample budget needs (one call
-            # for 25 lego views x 1024 rays left the last views' rays unrendered, those poses drifting)
-            pixels = trainer.renderer.render_pixels(lambda first: corr.for_rays(c2w, idx[first:]), batch.u, batch.v,
-                                                   (views.focal, views.cx, views.cy), weights)
-            for first, rgb in pixels:
-                # sum of per-view means: each view's gradient is what refining it alone would see
-                target = batch.rgb[first:first + rgb.shape[0]]
-                loss = torch.nn.functional.mse_loss(rgb, target, reduction="sum") / (3 * rays_per_step)
-                loss.backward()
-            opt.step()
+        refine_corrections(trainer, corr, c2w, pixels, (views.focal, views.cx, views.cy),
+                           trainer.level_weights(trainer.cfg.iters), trainer.cfg.pose_refine_steps,
+                           trainer.cfg.pose_lr, trainer.cfg.pose_lr_final)
     with torch.no_grad():
         return corr(c2w)
 

@@ -30,8 +30,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .cameras import apply_correction
-from .config import exp_decay
-from .evaluate import frozen
+from .evaluate import frozen, refine_corrections
 
 if TYPE_CHECKING:
     from .cameras import PoseCorrection
@@ -114,29 +113,20 @@ class _ViewSearch:
         return torch.cat(out)
 
     def refine(self, deltas: torch.Tensor, steps: int, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Refine k corrections together (rows are independent; the field must be frozen); returns the
-        refined corrections and their losses on all pixels."""
+        """Refine k corrections together on all pixels (rows are independent; the field must be
+        frozen), the rate decaying from ``lr`` to ``lr / 10``; returns the refined corrections and
+        their losses."""
         from .cameras import PoseCorrection
 
         k, n = deltas.shape[0], self.rows.shape[0]
         corr = PoseCorrection(k, frame=self.frame).to(deltas.device)
         with torch.no_grad():
             corr.delta.copy_(deltas)
-        opt = torch.optim.Adam(corr.parameters(), lr=lr)
-        base = self.start.expand(k, 3, 4).contiguous()
         idx = torch.arange(k, device=deltas.device).repeat_interleave(n)
-        u, v, rgb = (self.cols.float() + 0.5).repeat(k), (self.rows.float() + 0.5).repeat(k), self.rgb.repeat(k, 1)
+        rays = idx, (self.cols.float() + 0.5).repeat(k), (self.rows.float() + 0.5).repeat(k), self.rgb.repeat(k, 1)
         views = self.trainer.views
-        for i in range(steps):
-            for g in opt.param_groups:
-                g["lr"] = exp_decay(lr, 0.1 * lr, i / max(steps - 1, 1))
-            opt.zero_grad(set_to_none=True)
-            pixels = self.trainer.renderer.render_pixels(lambda first: corr.for_rays(base, idx[first:]), u, v,
-                                                         (views.focal, views.cx, views.cy), self.weights)
-            for first, out in pixels:  # every ray rendered, in as many calls as the sample budget needs
-                loss = (out - rgb[first:first + out.shape[0]]).square().sum() / (3 * n)
-                loss.backward()
-            opt.step()
+        refine_corrections(self.trainer, corr, self.start.expand(k, 3, 4).contiguous(), lambda _step: rays,
+                           (views.focal, views.cx, views.cy), self.weights, steps, lr, 0.1 * lr)
         refined = corr.delta.detach().clone()
         return refined, self.losses(refined, n)
 
