@@ -76,16 +76,24 @@ def _squared_errors(trainer: "Trainer", c2w_rays: torch.Tensor, rows, cols, targ
     return err
 
 
-@torch.no_grad()
-def view_losses(trainer: "Trainer", c2w: torch.Tensor, weights, seed: int) -> torch.Tensor:
-    """(N,) photometric loss of every training view at poses ``c2w`` (N, 3, 4): the mean squared
-    error of ``PROBE_PIXELS`` probe pixels per view."""
+def _all_probe_pixels(trainer: "Trainer", n_views: int, seed: int) -> list:
     gen = torch.Generator().manual_seed(seed)
-    parts = [probe_pixels(trainer, v, PROBE_PIXELS, gen) for v in range(c2w.shape[0])]
-    rows, cols, rgb = (torch.cat(p) for p in zip(*parts))
+    return [probe_pixels(trainer, v, PROBE_PIXELS, gen) for v in range(n_views)]
+
+
+@torch.no_grad()
+def _losses_on(trainer: "Trainer", c2w: torch.Tensor, pixels: list, weights) -> torch.Tensor:
+    """(N,) mean squared error of each pose in ``c2w`` (N, 3, 4) on its own ``PROBE_PIXELS`` pixels."""
+    rows, cols, rgb = (torch.cat(p) for p in zip(*pixels))
     idx = torch.arange(c2w.shape[0], device=c2w.device).repeat_interleave(PROBE_PIXELS)
     err = _squared_errors(trainer, c2w.index_select(0, idx), rows, cols, rgb, weights)
     return err.view(c2w.shape[0], PROBE_PIXELS).mean(1)
+
+
+def view_losses(trainer: "Trainer", c2w: torch.Tensor, weights, seed: int) -> torch.Tensor:
+    """(N,) photometric loss of every training view at poses ``c2w`` (N, 3, 4): the mean squared
+    error of ``PROBE_PIXELS`` probe pixels per view (drawn from ``seed``)."""
+    return _losses_on(trainer, c2w, _all_probe_pixels(trainer, c2w.shape[0], seed), weights)
 
 
 class _ViewSearch:
@@ -135,13 +143,15 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                      optimizer: torch.optim.Optimizer, step: int, ratio: float, lr: float) -> list[dict]:
     """Find the views whose loss exceeds ``ratio`` x the median view's and register them again
     (module docstring). Changes ``correction`` and ``optimizer``'s moments of those views in place;
-    returns one dict per flagged view: view, loss ratios before / after, rounds searched, the best
-    ratio after refining in place and after each round (``ratio_by_round``), seconds."""
+    returns one dict per flagged view: view, loss ratios before / after (on the pixels that flagged
+    it), rounds searched, the best ratio on the search's own pixels after refining in place and after
+    each round (``ratio_by_round``), seconds."""
     seed = trainer.cfg.seed * 1000 + step
     weights = trainer.level_weights(step)
     with torch.no_grad():
         current = correction(start_c2w)
-    losses = view_losses(trainer, current, weights, seed)
+    probes = _all_probe_pixels(trainer, current.shape[0], seed)
+    losses = _losses_on(trainer, current, probes, weights)
     median = float(losses.median())
     flagged = [int(v) for v in torch.nonzero(losses > ratio * median).flatten()]
     if not flagged:
@@ -177,11 +187,14 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                 trace.append(best_loss / median)
             with torch.no_grad():
                 correction.delta[v] = best
+                registered = correction(start_c2w[v:v + 1], torch.tensor([v]))
+            # the ratio after on the pixels that flagged the view (the search scores its own pixels)
+            after = float(_losses_on(trainer, registered, probes[v:v + 1], weights)[0])
             state = optimizer.state.get(correction.delta, {})
             for key in ("exp_avg", "exp_avg_sq"):
                 if key in state:
                     state[key][v] = 0.0
             results.append({"view": v, "step": step, "loss_ratio_before": float(losses[v]) / median,
-                            "loss_ratio_after": best_loss / median, "rounds": rounds,
+                            "loss_ratio_after": after / median, "rounds": rounds,
                             "ratio_by_round": trace, "seconds": time.perf_counter() - t0})
     return results
