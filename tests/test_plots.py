@@ -42,3 +42,21 @@ def test_plots_write_pngs(tmp_path):
                                     {"iter": it, "loss": rot, "psnr": trans, "test psnr": [(50, 20.0), (90, 22.0)]})
     for p in (p1, p2, p3, p4):
         assert _is_png(p)
+
+
+def test_pose_error_curve_draws_events(tmp_path):
+    """``events`` (the re-registration passes) add a marked line to both panels: the image changes."""
+    import imageio.v3 as iio
+
+    it = list(range(0, 100, 10))
+    rot = [10.0 / (1 + i) for i in it]
+    trans = [30.0 / (1 + i) for i in it]
+    plain = plots.plot_pose_error_curve(str(tmp_path / "plain.png"), it, rot, trans)
+    marked = plots.plot_pose_error_curve(str(tmp_path / "marked.png"), it, rot, trans,
+                                         events={50: "2 views re-registered"})
+    a, b = iio.imread(plain), iio.imread(marked)
+    assert a.shape == b.shape and _is_png(marked)
+    changed = (a != b).any(-1)
+    # the marker sits at iteration 50, mid-way along each panel's x axis: two separate columns of change
+    cols = changed.any(0).nonzero()[0]
+    assert changed.sum() > 100 and cols.min() < a.shape[1] // 2 < cols.max(), cols

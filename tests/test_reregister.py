@@ -109,6 +109,9 @@ def test_passes_search_again_at_multiples_of_the_fraction(monkeypatch):
     trainer.fit(progress=False)
     assert calls == [9, 18, 27]
     assert [(r["view"], r["step"]) for r in trainer.task.reregistered] == [(2, 9), (4, 18), (6, 27)]
+    # the pose-error plot marks each pass that moved a view
+    assert trainer.task.reregistration_events() == {9: "1 view re-registered", 18: "1 view re-registered",
+                                                    27: "1 view re-registered"}
 
 
 def test_reregistration_is_off_by_default_and_checked():

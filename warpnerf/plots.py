@@ -113,6 +113,7 @@ def plot_pose_error_curve(
     title: str = "",
     log_y: bool = True,
     rot_label: str | None = None,
+    events: Mapping[int, str] | None = None,
 ) -> str:
     """Pose error against training iteration: rotation (degrees) and translation (x100) panels.
 
@@ -121,7 +122,8 @@ def plot_pose_error_curve(
     ``plot_pose_error_curve(path, {"G²fR": (iters, rot, trans), "no mask": (...)})``.
     Sequences are 1-D (same length within a run). Log y axis by default, since the errors fall
     by orders of magnitude. ``rot_label``: the rotation panel's axis label (e.g. for the error
-    without alignment). Returns the path.
+    without alignment). ``events``: iteration -> short text, drawn as a dotted vertical line in both
+    panels (e.g. the views re-registered at that step). Returns the path.
     """
     if isinstance(iters, Mapping):
         runs = {k: v for k, v in iters.items()}
@@ -138,6 +140,11 @@ def plot_pose_error_curve(
         colour = _RUN_COLOURS[i % len(_RUN_COLOURS)]
         ax_r.plot(_np(it), _np(rot), color=colour, label=label)
         ax_t.plot(_np(it), _np(trans), color=colour, label=label)
+    for ax in (ax_r, ax_t):
+        for step, text in (events or {}).items():
+            ax.axvline(step, color="0.4", linestyle=":", linewidth=1)
+            ax.annotate(text, (step, 0.97), xycoords=("data", "axes fraction"), xytext=(2, 0),
+                        textcoords="offset points", ha="left", va="top", rotation=90, fontsize=7, color="0.3")
     for ax, name in ((ax_r, rot_label or "rotation error (degrees)"), (ax_t, "translation error (BARF, w2c, x100)")):
         ax.set_xlabel("iteration")
         ax.set_ylabel(name)

@@ -300,7 +300,16 @@ class PoseTask(Task):
         plots.plot_pose_error_curve(os.path.join(out_dir, "pose_error.png"), self.history["step"],
                                     self.history["rot_err_deg_unaligned" if unaligned else "rot_err_deg"],
                                     self.history["trans_err_x100"],
-                                    rot_label="rotation error, unaligned (degrees)" if unaligned else None)
+                                    rot_label="rotation error, unaligned (degrees)" if unaligned else None,
+                                    events=self.reregistration_events())
+
+    def reregistration_events(self) -> dict[int, str]:
+        """Step -> "N view(s) re-registered" for each pass that searched for views (the pose-error
+        plot's markers; which views: metrics.json, the run's summary)."""
+        counts: dict[int, int] = {}
+        for r in self.reregistered:
+            counts[r["step"]] = counts.get(r["step"], 0) + 1
+        return {step: f"{n} view{'s' if n > 1 else ''} re-registered" for step, n in counts.items()}
 
 
 TASKS = {cls.name: cls for cls in (FullTask, FewShotTask, PoseTask)}
