@@ -126,3 +126,26 @@ def test_reregistration_is_off_by_default_and_checked():
         with pytest.raises(ConfigError, match="pose_reregister_passes must be"):
             build_config("pose", overrides={"pose_reregister_passes": passes, "pose_reregister_at": at})
     assert build_config("pose", overrides={"pose_reregister_passes": 2, "pose_reregister_at": 0.3333}).pose_reregister_passes == 2
+
+
+def test_search_rounds_refine_in_two_stages_on_one_schedule():
+    """Successive halving: all drawn poses for HALVING_STEPS steps, then the KEEP lowest for the rest,
+    on the one-stage rate schedule (lr -> lr / 10 over REFINE_STEPS) split where the stages meet."""
+    import warpnerf.reregister as rr
+
+    calls = []
+
+    class FakeSearch:
+        def refine(self, deltas, steps, lr, lr_final):
+            calls.append((deltas.clone(), steps, lr, lr_final))
+            return deltas + 1.0, deltas[:, 0].clone()  # "refined" rows, and losses: their first coordinate
+
+    deltas = torch.tensor([[5.0] + [0.0] * 5, [2.0] + [0.0] * 5, [9.0] + [0.0] * 5, [1.0] + [0.0] * 5])
+    refined, losses = rr._refine_halving(FakeSearch(), deltas, lr=1e-2)
+    (d1, s1, a1, b1), (d2, s2, a2, b2) = calls
+    assert torch.equal(d1, deltas) and s1 == rr.HALVING_STEPS and s1 + s2 == rr.REFINE_STEPS
+    assert torch.equal(d2[:, 0], torch.tensor([2.0, 3.0])[: rr.KEEP])  # the KEEP lowest after stage 1
+    step = 0.1 ** (1 / (rr.REFINE_STEPS - 1))  # the per-step rate factor of the one-stage schedule
+    assert a1 == pytest.approx(1e-2) and b2 == pytest.approx(1e-3)
+    assert a2 / b1 == pytest.approx(step)  # no jump where the stages meet
+    assert refined.shape == (rr.KEEP, 6) and losses.shape == (rr.KEEP,)

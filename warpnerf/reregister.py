@@ -14,7 +14,9 @@ view above ``pose_reregister_ratio`` x the median is
 1. refined where it is, the field frozen (``REFINE_STEPS`` Adam steps on ``PROBE_PIXELS`` pixels);
 2. if its loss is still above ``OK_RATIO`` x the median, searched for: poses drawn the way the noise
    was (a correction ~ N(0, s^2) per se(3) coordinate, s the spread of the other views' corrections,
-   around the view's starting pose), the ``TOP`` best on ``SCREEN_PIXELS`` pixels refined as in 1.
+   around the view's starting pose), the ``TOP`` best on ``SCREEN_PIXELS`` pixels refined as in 1,
+   in two stages (successive halving): all ``TOP`` for ``HALVING_STEPS`` steps, then the ``KEEP``
+   lowest on all probe pixels for the rest (a refinement's cost is linear in the poses refined).
    A round that lowers the best loss by 30 % narrows the next draw around it (``SHRINK``); a round
    that does not starts again from the whole spread. At most ``ROUNDS`` rounds.
 
@@ -41,6 +43,8 @@ SCREEN_PIXELS = 128  # pixels per drawn pose in the search's first screening
 DRAWS = 2000  # poses drawn per search round
 TOP = 8  # drawn poses refined per round
 REFINE_STEPS = 100  # Adam steps of each refinement (lr pose_lr -> pose_lr / 10)
+HALVING_STEPS = 25  # a round refines all TOP poses this many steps, then only the KEEP best
+KEEP = 2
 OK_RATIO = 3.0  # a view is registered once its loss is below this x the median view's
 ROUNDS = 8
 SHRINK = 0.4  # the draw's spread after a round that made progress
@@ -120,9 +124,9 @@ class _ViewSearch:
             out.append(err.view(m, n_pixels).mean(1))
         return torch.cat(out)
 
-    def refine(self, deltas: torch.Tensor, steps: int, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
+    def refine(self, deltas: torch.Tensor, steps: int, lr: float, lr_final: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Refine k corrections together on all pixels (rows are independent; the field must be
-        frozen), the rate decaying from ``lr`` to ``lr / 10``; returns the refined corrections and
+        frozen), the rate decaying from ``lr`` to ``lr_final``; returns the refined corrections and
         their losses."""
         from .cameras import PoseCorrection
 
@@ -134,9 +138,20 @@ class _ViewSearch:
         rays = idx, (self.cols.float() + 0.5).repeat(k), (self.rows.float() + 0.5).repeat(k), self.rgb.repeat(k, 1)
         views = self.trainer.views
         refine_corrections(self.trainer, corr, self.start.expand(k, 3, 4).contiguous(), lambda _step: rays,
-                           (views.focal, views.cx, views.cy), self.weights, steps, lr, 0.1 * lr)
+                           (views.focal, views.cx, views.cy), self.weights, steps, lr, lr_final)
         refined = corr.delta.detach().clone()
         return refined, self.losses(refined, n)
+
+
+def _refine_halving(search: _ViewSearch, deltas: torch.Tensor, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``search.refine`` over REFINE_STEPS steps (rate lr -> lr / 10) for the ``KEEP`` of ``deltas`` that
+    are lowest after the first ``HALVING_STEPS`` (the others stop there); returns those KEEP."""
+    def rate(step: int) -> float:  # one REFINE_STEPS schedule, split in two
+        return lr * 0.1 ** (step / (REFINE_STEPS - 1))
+
+    early, early_loss = search.refine(deltas, HALVING_STEPS, rate(0), rate(HALVING_STEPS - 1))
+    keep = torch.argsort(early_loss)[:KEEP]
+    return search.refine(early[keep], REFINE_STEPS - HALVING_STEPS, rate(HALVING_STEPS), rate(REFINE_STEPS - 1))
 
 
 def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w: torch.Tensor,
@@ -169,7 +184,7 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
             t0 = time.perf_counter()
             search = _ViewSearch(trainer, start_c2w[v:v + 1], probe_pixels(trainer, v, PROBE_PIXELS, gen), weights,
                                  correction.frame)
-            best, best_loss = search.refine(deltas[v:v + 1].clone(), REFINE_STEPS, lr)
+            best, best_loss = search.refine(deltas[v:v + 1].clone(), REFINE_STEPS, lr, 0.1 * lr)
             best, best_loss = best[0], float(best_loss[0])
             centre, scale, rounds = torch.zeros_like(spread), spread.clone(), 0
             trace = [best_loss / median]  # the best loss ratio after refining in place, then after each round
@@ -177,7 +192,7 @@ def reregister_views(trainer: "Trainer", correction: "PoseCorrection", start_c2w
                 rounds += 1
                 draws = centre + torch.randn(DRAWS, 6, generator=gen).to(spread.device) * scale
                 pick = torch.argsort(search.losses(draws, SCREEN_PIXELS))[:TOP]
-                refined, refined_loss = search.refine(draws[pick], REFINE_STEPS, lr)
+                refined, refined_loss = _refine_halving(search, draws[pick], lr)
                 i = int(torch.argmin(refined_loss))
                 progress = float(refined_loss[i]) < 0.7 * best_loss
                 if float(refined_loss[i]) < best_loss:
