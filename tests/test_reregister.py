@@ -61,6 +61,27 @@ def test_a_far_off_view_is_found_by_its_loss_and_registered_again(trained):
     assert all(p.requires_grad for p in trained.field.parameters())  # the field is unfrozen afterwards
 
 
+def test_a_slow_view_refined_under_the_ratio_in_place_is_not_searched(trained, monkeypatch):
+    """A flagged view that the in-place refinement brings under the flag ratio was slow, not lost:
+    no search round (mic: such views gained nothing in 8 rounds and converged in training)."""
+    import warpnerf.reregister as rr
+
+    monkeypatch.setattr(rr, "OK_RATIO", 0.01)  # a search would run whatever the refinement reached
+    slow = 4
+    gt, noisy, correction, optimizer = noisy_setup(trained, slow)
+    with torch.no_grad():  # 15 % of its noise left instead of twice the noise: a slow view, not a lost one
+        correction.delta[slow] = correction.delta[slow] * -0.85
+    before = rotation_error_deg(correction(noisy).detach()[:, :, :3], gt[:, :, :3])[slow]
+    losses = view_losses(trained, correction(noisy).detach(), trained.level_weights(300), seed=3 * 1000 + 300)
+    ratio = 0.8 * float(losses[slow] / losses.median())  # just flagged
+    assert ratio > 1.5, losses
+    found = reregister_views(trained, correction, noisy, optimizer, 300, ratio=ratio, lr=3e-3)
+    assert [r["view"] for r in found] == [slow] and found[0]["rounds"] == 0, found
+    assert found[0]["ratio_by_round"][0] < ratio, found
+    after = rotation_error_deg(correction(noisy).detach()[:, :, :3], gt[:, :, :3])[slow]
+    assert after < 0.5 * before, (before, after)
+
+
 def test_nothing_is_flagged_when_every_view_is_registered(trained):
     gt, noisy, correction, optimizer = noisy_setup(trained, 0)
     with torch.no_grad():
