@@ -105,7 +105,8 @@ def test_the_pose_task_searches_once_at_its_fraction_of_the_run(monkeypatch, cap
                  "seconds": 3.0}]
 
     monkeypatch.setattr(rr, "reregister_views", fake)
-    trainer = make_trainer("pose", iters=40, pose_reregister_at=0.25, pose_reregister_ratio=8.0, pose_lr=2e-3)
+    trainer = make_trainer("pose", iters=40, pose_reregister_at=0.25, pose_reregister_passes=1, pose_reregister_ratio=8.0,
+                           pose_lr=2e-3)
     trainer.fit(progress=False)
     # after step 10 of 40 (trainer.step is still the step that just ran), at the task's pose rate
     assert calls == [(9, 10, 8.0, pytest.approx(2e-3 * trainer.task.lr_scale))]
@@ -143,10 +144,19 @@ def test_reregistration_is_off_by_default_and_checked():
         build_config("pose", overrides={"pose_reregister_at": 1.0})
     with pytest.raises(ConfigError, match="pose_reregister_ratio must be"):
         build_config("pose", overrides={"pose_reregister_ratio": 0.5})
-    for passes, at in ((0, 0.3), (3, 0.34)):  # no pass, or the last one past the end of the run
-        with pytest.raises(ConfigError, match="pose_reregister_passes must be"):
-            build_config("pose", overrides={"pose_reregister_passes": passes, "pose_reregister_at": at})
-    assert build_config("pose", overrides={"pose_reregister_passes": 2, "pose_reregister_at": 0.3333}).pose_reregister_passes == 2
+    with pytest.raises(ConfigError, match="pose_reregister_passes must be"):
+        build_config("pose", overrides={"pose_reregister_passes": 0, "pose_reregister_at": 0.3})
+    assert build_config("pose").pose_reregister_passes == 2  # a second pass once the field is sharp
+
+
+@pytest.mark.parametrize("at, passes, steps", [(0.3333, 2, [999, 1999]), (0.5, 2, [1499]), (0.34, 3, [1019, 2039]),
+                                               (0.25, 1, [749]), (0.0, 2, [])])
+def test_passes_past_the_end_of_the_run_are_dropped(at, passes, steps):
+    from warpnerf.config import build_config
+    from warpnerf.tasks import make_task
+
+    cfg = build_config("pose", overrides={"iters": 3000, "pose_reregister_at": at, "pose_reregister_passes": passes})
+    assert make_task(cfg).reregister_steps() == steps
 
 
 def test_search_rounds_refine_in_two_stages_on_one_schedule():

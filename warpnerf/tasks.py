@@ -208,11 +208,13 @@ class PoseTask(Task):
 
     def reregister_steps(self) -> list[int]:
         """The steps after which views are searched for again: at ``pose_reregister_at`` of the run
-        and its multiples, ``pose_reregister_passes`` in all; none when off."""
+        and its multiples, ``pose_reregister_passes`` at most (a pass at or past the run's end is
+        dropped: with 0.5, one pass); none when off."""
         at = self.cfg.pose_reregister_at
         if at <= 0:
             return []
-        return [max(int(round(k * at * self.cfg.iters)) - 1, 0) for k in range(1, self.cfg.pose_reregister_passes + 1)]
+        passes = [k * at for k in range(1, self.cfg.pose_reregister_passes + 1)]
+        return [max(int(round(f * self.cfg.iters)) - 1, 0) for f in passes if f < 1.0]
 
     def after_step(self, trainer: "Trainer", step: int) -> dict:
         if step in self.reregister_steps():
