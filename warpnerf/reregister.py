@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from .cameras import apply_correction
+from .config import exp_decay
 from .evaluate import frozen, refine_corrections
 
 if TYPE_CHECKING:
@@ -147,8 +148,8 @@ class _ViewSearch:
 def _refine_halving(search: _ViewSearch, deltas: torch.Tensor, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
     """``search.refine`` over REFINE_STEPS steps (rate lr -> lr / 10) for the ``KEEP`` of ``deltas`` that
     are lowest after the first ``HALVING_STEPS`` (the others stop there); returns those KEEP."""
-    def rate(step: int) -> float:  # one REFINE_STEPS schedule, split in two
-        return lr * 0.1 ** (step / (REFINE_STEPS - 1))
+    def rate(step: int) -> float:  # one REFINE_STEPS schedule (refine_corrections'), split in two
+        return exp_decay(lr, 0.1 * lr, step / (REFINE_STEPS - 1))
 
     early, early_loss = search.refine(deltas, HALVING_STEPS, rate(0), rate(HALVING_STEPS - 1))
     keep = torch.argsort(early_loss)[:KEEP]
