@@ -279,6 +279,54 @@ def test_procrustes_rejects_reflection():
     assert abs(torch.linalg.det(R).item() - 1) < 1e-12
 
 
+def _forward_facing_rig(n=20, seed=3):
+    """fern-like rig: centres spread 1.0 / 0.3 / 0.02 in a plane facing the scene, every camera
+    looking along -z at a point far in front (float64)."""
+    g = torch.Generator().manual_seed(seed)
+    centres = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([1.0, 0.3, 0.02], dtype=torch.float64)
+    return C.look_at(centres, target=(0.0, 0.0, -8.0), up=(0.0, 1.0, 0.0))
+
+
+def test_pose_alignment_recovers_a_known_sim3_and_is_symmetric():
+    """With the rotation fitted to the orientations (align="orientations") an exact similarity is
+    still recovered exactly, and swapping the two pose sets gives its inverse."""
+    gt = _forward_facing_rig()
+    s0, R0 = 0.6, C.so3_exp(torch.tensor([0.3, -0.7, 1.1], dtype=torch.float64))
+    t0 = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    est = C.apply_sim3_to_poses(gt, s0, R0, t0)
+    s, R, t = C.procrustes_sim3(est[:, :, 3], gt[:, :, 3], src_rot=est[:, :, :3], dst_rot=gt[:, :, :3])
+    si, Ri, ti = C.invert_sim3(s0, R0, t0)
+    assert abs(s - si) < 1e-12 and (R - Ri).abs().max() < 1e-12 and (t - ti).abs().max() < 1e-11
+    s2, R2, t2 = C.procrustes_sim3(gt[:, :, 3], est[:, :, 3], src_rot=gt[:, :, :3], dst_rot=est[:, :, :3])
+    assert abs(s2 - s0) < 1e-12 and (R2 - R0).abs().max() < 1e-12 and (t2 - t0).abs().max() < 1e-11
+    with pytest.raises(ValueError, match="both src_rot and dst_rot"):
+        C.procrustes_sim3(est[:, :, 3], gt[:, :, 3], src_rot=est[:, :, :3])
+    with pytest.raises(ValueError, match="align must be one of"):
+        C.evaluate_poses(est, gt, align="poses")
+
+
+def test_pose_alignment_pins_the_rotation_where_centres_are_nearly_planar():
+    """fern's case (README, "Pose errors on forward-facing scenes"): every orientation is right but the
+    centres' depths carry an error that grows across the rig (a tilt of 3 deg, which nearly planar
+    centres cannot tell from a rotation). Aligning the centres alone turns every camera by about that
+    much; fitting the rotation to the orientations keeps them where they are, with the centres'
+    scale."""
+    gt = _forward_facing_rig()
+    est = gt.clone()
+    est[:, 2, 3] += math.tan(math.radians(3.0)) * gt[:, 0, 3]  # depth error along the rig's long axis
+    centres = C.evaluate_poses(est, gt, align="centres")
+    poses = C.evaluate_poses(est, gt, align="orientations")
+    assert centres["alignment"] == "centres" and poses["alignment"] == "orientations"
+    assert centres["rot_err_deg"] > 2.0  # the centres' fit rotates the cameras by ~the tilt
+    assert poses["rot_err_deg"] < 1e-6
+    assert poses["rot_err_deg_unaligned"] == centres["rot_err_deg_unaligned"] == pytest.approx(0.0, abs=1e-6)
+    assert poses["sim3"][0] == pytest.approx(centres["sim3"][0], rel=1e-12)  # the scale is the centres'
+    # on a rig without errors both recover it
+    ring = _ring_cameras(15, dtype=torch.float64)
+    a, b = C.evaluate_poses(ring, ring, align="centres"), C.evaluate_poses(ring, ring, align="orientations")
+    assert a["rot_err_deg"] == pytest.approx(0.0, abs=1e-5) and b["rot_err_deg"] == pytest.approx(0.0, abs=1e-5)
+
+
 def test_rotation_error_known_angles():
     I = torch.eye(3)
     Rz10 = C.rotation_about_axis([0, 0, 1], math.radians(10.0))

@@ -95,7 +95,8 @@ def _summary(m: dict) -> str:
     parts = [f"PSNR {m['psnr']:.2f} dB", f"SSIM {m['ssim']:.3f}", f"{m['iters']} iters",
              f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
     if "rot_err_deg" in m:
-        parts += [f"rot err {m['rot_err_deg']:.3f} deg", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
+        aligned = " (orientations aligned)" if m.get("pose_alignment") == "orientations" else ""
+        parts += [f"rot err {m['rot_err_deg']:.3f} deg{aligned}", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
         from .cameras import describe_unconverged
 
         stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so

@@ -132,14 +132,29 @@ class PoseTask(Task):
         self.initial: dict = {}
         self.final: dict = {}
         self.reregistered: list[dict] = []  # warpnerf.reregister's report, one dict per view searched for
+        self.alignment = "centres"  # set from the scene in setup (alignment_for)
 
     def caveat(self, scene: Scene) -> Optional[str]:
-        # measured on fern (README, "Open work"): Procrustes on nearly planar camera centres
+        # measured on fern (README, "Pose errors on forward-facing scenes"): Procrustes on nearly planar
+        # camera centres turned the cameras by 6 deg
         if scene.ray_space.forward_facing:
-            return ("note: on forward-facing (NDC) scenes BARF's pose errors are unreliable: the camera centres "
-                    "barely span 3-D, so the alignment's rotation is ill-determined (fern: 6 deg); read "
-                    "rot_err_deg_unaligned (README, 'Open work')")
+            return ("note: on forward-facing (NDC) scenes the pose errors take the alignment's rotation from the "
+                    "cameras' orientations (BARF's, from camera centres that barely span 3-D, turned fern by 6 deg): "
+                    "not comparable with BARF's LLFF figures")
         return None
+
+    @staticmethod
+    def alignment_for(scene: Scene) -> str:
+        """How estimated poses are aligned to the ground truth (``cameras.evaluate_poses``' ``align``):
+        BARF's centres, except on forward-facing scenes, whose centres leave the rotation ill-determined."""
+        return "orientations" if scene.ray_space.forward_facing else "centres"
+
+    def evaluate(self) -> dict:
+        """:func:`warpnerf.cameras.evaluate_poses` of the current training poses (no gradient)."""
+        from .cameras import evaluate_poses
+
+        with torch.no_grad():
+            return evaluate_poses(self.current_c2w(), self.gt_c2w, self.alignment)
 
     def noise_sigmas(self, scene: Scene) -> tuple[float, float]:
         # the paper's settings: 0.15 on synthetic scenes, 0.01 on real captures (LLFF, COLMAP, transforms.json)
@@ -152,6 +167,7 @@ class PoseTask(Task):
     def setup(self, trainer: "Trainer") -> None:
         from .cameras import PoseCorrection, evaluate_poses, perturb_poses
 
+        self.alignment = self.alignment_for(trainer.scene)
         gt = trainer.train_c2w
         rot, trans = self.noise_sigmas(trainer.scene)
         # its own generator: the same seed gives the same noise with and without G²fR
@@ -165,7 +181,7 @@ class PoseTask(Task):
         # (garden, 3e-3: 0.94 deg at step 0, 5.4 deg at step 130); scale it with the noise
         self.lr_scale = min(max(rot, trans) / NOISE_SIGMA_SYNTHETIC, 1.0) if self.cfg.pose_lr_by_noise else 1.0
         self.optimizer = torch.optim.Adam(self.correction.parameters(), lr=self.cfg.pose_lr * self.lr_scale)
-        init = evaluate_poses(self.noisy_c2w, self.gt_c2w)
+        init = evaluate_poses(self.noisy_c2w, self.gt_c2w, self.alignment)
         self.initial = {k: init[k] for k in ("rot_err_deg", "trans_err_x100", "centre_err_x100", "rot_err_deg_unaligned")}
         self._record(0)
 
@@ -193,10 +209,7 @@ class PoseTask(Task):
         self.optimizer.zero_grad(set_to_none=True)
 
     def _record(self, step: int) -> dict:
-        from .cameras import evaluate_poses
-
-        with torch.no_grad():
-            ev = evaluate_poses(self.current_c2w(), self.gt_c2w)
+        ev = self.evaluate()
         self.history["step"].append(step)
         self.history["rot_err_deg"].append(ev["rot_err_deg"])
         self.history["trans_err_x100"].append(ev["trans_err_x100"])
@@ -222,8 +235,6 @@ class PoseTask(Task):
         # same cadence as the trainer's progress line, so the bar shows the errors
         if step % max(self.cfg.log_every, 1) == 0 or step + 1 == self.cfg.iters:
             ev = self._record(step + 1)
-            if trainer.scene.ray_space.forward_facing:  # the aligned rotation is not the poses' (caveat)
-                return {"rot_ua": f"{ev['rot_err_deg_unaligned']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
             return {"rot": f"{ev['rot_err_deg']:.3f}", "trans": f"{ev['trans_err_x100']:.2f}"}
         return {}
 
@@ -248,17 +259,13 @@ class PoseTask(Task):
     def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
         """Test poses mapped into the optimised frame by the training-camera Sim(3) alignment, then
         refined photometrically (``pose_refine_steps`` Adam steps per view, field frozen)."""
-        from .cameras import evaluate_poses, map_gt_poses_to_estimate_frame, with_shared_camera_rotation
+        from .cameras import map_gt_poses_to_estimate_frame
 
-        ev = evaluate_poses(self.current_c2w(), self.gt_c2w)
+        ev = self.evaluate()
         self.final = ev
-        test_c2w = views.c2w.to(trainer.device).double()
-        if trainer.scene.ray_space.forward_facing:
-            # the centres barely span 3-D, so the alignment's rotation is ill-determined (fern: 6 deg while
-            # the poses improved): turn the test views by the rotation the aligned training cameras share,
-            # which absorbs it (fern: test PSNR 12.83 -> 21.40 dB; README, "Open work")
-            test_c2w = with_shared_camera_rotation(test_c2w, ev["rot_offset_cam_deg"])
-        mapped = map_gt_poses_to_estimate_frame(test_c2w, ev["sim3"]).float()
+        # on forward-facing scenes the alignment's rotation is the orientations' (alignment_for): the
+        # centres' was ill-determined, and test views mapped by it started 6 deg off (fern: 12.83 dB)
+        mapped = map_gt_poses_to_estimate_frame(views.c2w.to(trainer.device).double(), ev["sim3"]).float()
         if self.cfg.pose_refine_steps <= 0:
             return mapped
         from .evaluate import refine_poses
@@ -288,6 +295,7 @@ class PoseTask(Task):
             "pose_noise_trans": self.sigmas[1],
             "pose_error_history": self.history,
             "reregistered": self.reregistered,
+            "pose_alignment": self.alignment,
         }
 
     def artifacts(self, trainer: "Trainer", out_dir: str) -> None:
@@ -297,12 +305,10 @@ class PoseTask(Task):
 
         plots.plot_cameras(os.path.join(out_dir, "cameras.png"), self.gt_c2w.cpu(), self.noisy_c2w.cpu(),
                            self.final["c2w_aligned"].cpu(), title=f"{trainer.scene.name}: camera poses")
-        unaligned = trainer.scene.ray_space.forward_facing and len(self.history.get("rot_err_deg_unaligned", [])) == len(
-            self.history["step"])
         plots.plot_pose_error_curve(os.path.join(out_dir, "pose_error.png"), self.history["step"],
-                                    self.history["rot_err_deg_unaligned" if unaligned else "rot_err_deg"],
-                                    self.history["trans_err_x100"],
-                                    rot_label="rotation error, unaligned (degrees)" if unaligned else None,
+                                    self.history["rot_err_deg"], self.history["trans_err_x100"],
+                                    rot_label=("rotation error, orientations aligned (degrees)"
+                                               if self.alignment == "orientations" else None),
                                     events=self.reregistration_events())
 
     def reregistration_events(self) -> dict[int, str]:

@@ -204,11 +204,9 @@ def test_cameras(trainer) -> torch.Tensor:
     c2w = trainer.scene.test.c2w
     task = trainer.task
     if hasattr(task, "current_c2w"):
-        from .cameras import evaluate_poses, map_gt_poses_to_estimate_frame
+        from .cameras import map_gt_poses_to_estimate_frame
 
-        with torch.no_grad():
-            ev = evaluate_poses(task.current_c2w().detach(), task.gt_c2w)
-            c2w = map_gt_poses_to_estimate_frame(c2w.to(task.gt_c2w.device).double(), ev["sim3"]).float()
+        c2w = map_gt_poses_to_estimate_frame(c2w.to(task.gt_c2w.device).double(), task.evaluate()["sim3"]).float()
     return c2w.detach().cpu().float()
 
 
