@@ -182,3 +182,20 @@ def test_summary_names_reregistered_views():
     assert _summary(m).endswith("; re-registered view(s) 14, 79 at step 1000; 43 at step 2000")
     m["reregistered"] = []
     assert "re-registered" not in _summary(m)
+
+
+def test_eval_prints_pose_errors(monkeypatch, capsys):
+    """``warpnerf eval`` on a pose run prints the re-evaluated pose errors, not only PSNR / SSIM."""
+    import warpnerf.run
+    from warpnerf.cli import main
+
+    res = {"psnr": 21.29, "ssim": 0.587, "rot_err_deg": 0.398, "trans_err_x100": 1.32, "unconverged_views": [],
+           "pose_alignment": "orientations"}
+    monkeypatch.setattr(warpnerf.run, "evaluate_run", lambda run, progress=True, device=None: res)
+    assert main(["eval", "--run", "R", "--quiet"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line == ("PSNR 21.29 dB; SSIM 0.587; rot err 0.398 deg (orientations aligned); "
+                    "trans err (BARF) x100 1.320; written to R/eval/metrics.json")
+    res = {"psnr": 30.0, "ssim": 0.95}  # another task: no pose figures
+    assert main(["eval", "--run", "R", "--quiet"]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == "PSNR 30.00 dB; SSIM 0.950; written to R/eval/metrics.json"

@@ -94,6 +94,12 @@ def cmd_train(args) -> int:
 def _summary(m: dict) -> str:
     parts = [f"PSNR {m['psnr']:.2f} dB", f"SSIM {m['ssim']:.3f}", f"{m['iters']} iters",
              f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
+    return "; ".join(parts + _pose_summary(m))
+
+
+def _pose_summary(m: dict) -> list[str]:
+    """The pose task's figures in a run's (or an evaluation's) metrics; [] for other tasks."""
+    parts = []
     if "rot_err_deg" in m:
         aligned = " (orientations aligned)" if m.get("pose_alignment") == "orientations" else ""
         parts += [f"rot err {m['rot_err_deg']:.3f} deg{aligned}", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
@@ -107,7 +113,7 @@ def _summary(m: dict) -> str:
             steps = sorted({r["step"] for r in found})
             parts.append("re-registered view(s) " + "; ".join(
                 f"{', '.join(str(r['view']) for r in found if r['step'] == s)} at step {s}" for s in steps))
-    return "; ".join(parts)
+    return parts
 
 
 def cmd_eval(args) -> int:
@@ -115,7 +121,8 @@ def cmd_eval(args) -> int:
 
     _setup_device(args)
     res = evaluate_run(args.run, progress=not args.quiet, device=args.device)
-    print(f"PSNR {res['psnr']:.2f} dB; SSIM {res['ssim']:.3f}; written to {args.run}/eval/metrics.json")
+    print("; ".join([f"PSNR {res['psnr']:.2f} dB", f"SSIM {res['ssim']:.3f}", *_pose_summary(res)])
+          + f"; written to {args.run}/eval/metrics.json")
     return 0
 
 
