@@ -159,3 +159,15 @@ def test_pose_table_names_unconverged_views_under_the_table():
     assert lines[-1] == ("mic w/ G2fR: 1 view(s) not converged (79; rot. err > 1 deg and 5x the median); "
                          "median rot. err 0.091 deg, trans. err 0.612")
     assert not any("w/o G2fR" in line for line in lines)  # only arms with stuck views get a line
+
+
+def test_pose_table_says_when_rotations_were_aligned_by_orientations():
+    rows = arms()
+    for m in rows.values():
+        m["pose_alignment"] = "orientations"  # what PoseTask.metrics records on a forward-facing scene
+    lines = format_table("pose", {"fern": rows}, "ngp").splitlines()
+    assert lines[-1].startswith("fern: forward-facing, so the alignment's rotation is fitted to the cameras' orientations")
+    centres = arms()
+    for m in centres.values():
+        m["pose_alignment"] = "centres"
+    assert not any("orientations" in line for line in format_table("pose", {"lego": centres}, "ngp").splitlines())

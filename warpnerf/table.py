@@ -56,6 +56,10 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
         from .cameras import describe_unconverged
 
         for scene, arms in rows.items():
+            if any(m.get("pose_alignment") == "orientations" for m in arms.values()):
+                lines.append(f"\n{scene}: forward-facing, so the alignment's rotation is fitted to the cameras' "
+                             "orientations, not their centres (README, 'Pose errors on forward-facing scenes'): "
+                             "not comparable with BARF's figures")
             for arm, m in arms.items():
                 stuck = describe_unconverged(m)
                 if stuck:
