@@ -128,6 +128,14 @@ def test_occ_uniform_fraction_is_checked(bad):
         C.validate(C.build_config("full", overrides={"occ_uniform_fraction": bad}))
 
 
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
+def test_background_low_is_checked(bad):
+    """A random background's channels are drawn from U[background_low, 1]: the bound must be a colour value."""
+    with pytest.raises(C.ConfigError, match="^background_low must be in"):
+        C.validate(C.build_config("full", overrides={"background_low": bad}))
+    C.validate(C.build_config("full", overrides={"background_low": 1.0}))
+
+
 @pytest.mark.parametrize("bad", [-0.01, float("nan"), float("inf")])
 def test_distortion_weight_is_checked(bad):
     """A negative weight would reward spreading each ray's weight; NaN or inf would poison the loss."""

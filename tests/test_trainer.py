@@ -552,6 +552,31 @@ def test_opaque_photos_train_an_opaque_field():
     assert float(on.mean()) > 0.85 and float(off.mean()) < 0.4, (float(on.mean()), float(off.mean()))
 
 
+@pytest.mark.parametrize("low", [0.0, 0.6])
+def test_random_backgrounds_are_drawn_above_background_low(low, monkeypatch):
+    """Each ray's random background has its channels in [background_low, 1] and spans that range
+    (0 keeps instant-ngp's U[0, 1]; a higher bound keeps them light, closer to a white scene background)."""
+    scene = tiny_scene()
+    scene.train.alpha = torch.ones(scene.train.images.shape[:3])  # as photos load: random backgrounds apply
+    cfg = build_config("full", overrides={**TINY, "iters": 10, "background_low": low})
+    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
+    seen = {}
+    render_rays = trainer.renderer.render_rays
+
+    def spy(o, d, weights, jitter, background, **kw):
+        seen["background"] = background.clone()
+        return render_rays(o, d, weights, jitter, background, **kw)
+
+    monkeypatch.setattr(trainer.renderer, "render_rays", spy)
+    trainer.train_step(0)
+    bg = seen["background"]
+    assert bg.shape[1] == 3 and bool(torch.isfinite(bg).all())
+    assert float(bg.min()) >= low and float(bg.max()) <= 1.0
+    # uniform on [low, 1]: the batch (hundreds of rays) reaches near both ends
+    assert float(bg.min()) < low + 0.05 and float(bg.max()) > 0.95, (float(bg.min()), float(bg.max()))
+    assert abs(float(bg.mean()) - (1 + low) / 2) < 0.03, float(bg.mean())
+
+
 @pytest.mark.parametrize("kind,sigma", [("blender", 0.15), ("llff", 0.01), ("colmap", 0.01), ("transforms", 0.01),
                                         ("unbounded", 0.01)])
 def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
