@@ -128,12 +128,15 @@ def test_occ_uniform_fraction_is_checked(bad):
         C.validate(C.build_config("full", overrides={"occ_uniform_fraction": bad}))
 
 
+@pytest.mark.parametrize("key", ["background_low", "background_low_late", "background_late_from"])
 @pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
-def test_background_low_is_checked(bad):
-    """A random background's channels are drawn from U[background_low, 1]: the bound must be a colour value."""
-    with pytest.raises(C.ConfigError, match="^background_low must be in"):
-        C.validate(C.build_config("full", overrides={"background_low": bad}))
-    C.validate(C.build_config("full", overrides={"background_low": 1.0}))
+def test_background_bounds_are_checked(key, bad):
+    """A random background's channels are drawn from U[low, 1]: each bound must be a colour value, and the
+    switch to the late bound a fraction of the steps."""
+    with pytest.raises(C.ConfigError, match=f"^{key} must be in"):
+        C.validate(C.build_config("full", overrides={key: bad}))
+    C.validate(C.build_config("full", overrides={key: 1.0}))
+    C.validate(C.build_config("full", overrides={key: 0.0}))
 
 
 @pytest.mark.parametrize("bad", [-0.01, float("nan"), float("inf")])

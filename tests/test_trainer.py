@@ -577,6 +577,31 @@ def test_random_backgrounds_are_drawn_above_background_low(low, monkeypatch):
     assert abs(float(bg.mean()) - (1 + low) / 2) < 0.03, float(bg.mean())
 
 
+def test_random_backgrounds_switch_to_background_low_late(monkeypatch):
+    """From background_late_from * iters on, the backgrounds are drawn from U[background_low_late, 1]
+    (1 = the scene's white); before it from U[background_low, 1]."""
+    scene = tiny_scene()
+    scene.train.alpha = torch.ones(scene.train.images.shape[:3])
+    cfg = build_config("full", overrides={**TINY, "iters": 10, "background_low": 0.0, "background_late_from": 0.5,
+                                          "background_low_late": 0.8})
+    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
+    seen = []
+    render_rays = trainer.renderer.render_rays
+
+    def spy(o, d, weights, jitter, background, **kw):
+        seen.append(background.clone())
+        return render_rays(o, d, weights, jitter, background, **kw)
+
+    monkeypatch.setattr(trainer.renderer, "render_rays", spy)
+    for step in (4, 5, 9):
+        trainer.train_step(step)
+    early, late, last = seen
+    assert float(early.min()) < 0.05 and abs(float(early.mean()) - 0.5) < 0.03, float(early.mean())
+    for bg in (late, last):
+        assert float(bg.min()) >= 0.8 and float(bg.max()) <= 1.0
+        assert abs(float(bg.mean()) - 0.9) < 0.02, float(bg.mean())
+
+
 @pytest.mark.parametrize("kind,sigma", [("blender", 0.15), ("llff", 0.01), ("colmap", 0.01), ("transforms", 0.01),
                                         ("unbounded", 0.01)])
 def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):

@@ -100,6 +100,8 @@ class TrainConfig:
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on the ray space's t (0 = off); concentrates each ray's weight, removing haze
     random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     background_low: float = 0.0  # random backgrounds draw each channel from U[background_low, 1]; > 0 keeps them light (closer to a white scene background)
+    background_late_from: float = 1.0  # from this fraction of the steps on, random backgrounds draw from U[background_low_late, 1] instead (1 = never)
+    background_low_late: float = 1.0  # the low bound after background_late_from (1 = the scene's white background)
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     error_sampling: float = 0.0  # share of training rays drawn where each image's recent error is highest (instant-ngp's error map), importance-weighted; 0 = uniform
     # --- G²fR (paper eq. 15) ---
@@ -352,8 +354,9 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"pose_reregister_passes must be >= 1, got {cfg.pose_reregister_passes}")
     if not (cfg.pose_reregister_ratio > 1.0 and math.isfinite(cfg.pose_reregister_ratio)):
         raise ConfigError(f"pose_reregister_ratio must be a finite number > 1, got {cfg.pose_reregister_ratio}")
-    if not 0.0 <= cfg.background_low <= 1.0:
-        raise ConfigError(f"background_low must be in [0, 1], got {cfg.background_low}")
+    for key in ("background_low", "background_late_from", "background_low_late"):
+        if not 0.0 <= getattr(cfg, key) <= 1.0:
+            raise ConfigError(f"{key} must be in [0, 1], got {getattr(cfg, key)}")
     if not 0.0 < cfg.occ_uniform_fraction <= 1.0:
         raise ConfigError(f"occ_uniform_fraction must be in (0, 1], got {cfg.occ_uniform_fraction}")
     if not math.isfinite(cfg.cp_density_shift):

@@ -179,7 +179,8 @@ class Trainer:
             # the target was composited on the scene's background: swap it for a random one per ray,
             # so a transparent field cannot pass for the (white) background (instant-ngp, nerfacc)
             background = torch.rand(o.shape[0], 3, generator=self.gen, device=self.device)
-            background = cfg.background_low + (1.0 - cfg.background_low) * background
+            low = cfg.background_low_late if step >= cfg.background_late_from * cfg.iters else cfg.background_low
+            background = low + (1.0 - low) * background
             target = target + (1.0 - self.alpha[batch.view, batch.row, batch.col])[:, None] * (background - self.background)
         # compaction pays when many samples lie behind opaque surfaces (lego late in training: 0.91x
         # the step time) and costs when few do (fern, 1 % behind: 1.15x): compact while the last
