@@ -101,7 +101,7 @@ class TrainConfig:
     random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
     background_low: float = 0.0  # random backgrounds draw each channel from U[background_low, 1]; > 0 keeps them light (closer to a white scene background)
     background_late_from: float = 1.0  # from this fraction of the steps on, random backgrounds draw from U[background_low_late, 1] instead (1 = never)
-    background_low_late: float = 1.0  # the low bound after background_late_from (1 = the scene's white background)
+    background_low_late: float = 1.0  # the low bound after background_late_from (1 = white, the NeRF-synthetic background)
     weight_decay_mlp: float = 1e-6  # L2 on MLP weights (instant-ngp)
     error_sampling: float = 0.0  # share of training rays drawn where each image's recent error is highest (instant-ngp's error map), importance-weighted; 0 = uniform
     # --- G²fR (paper eq. 15) ---
