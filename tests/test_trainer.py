@@ -579,7 +579,7 @@ def test_random_backgrounds_are_drawn_above_background_low(low, monkeypatch):
 
 def test_random_backgrounds_switch_to_background_low_late(monkeypatch):
     """From background_late_from * iters on, the backgrounds are drawn from U[background_low_late, 1]
-    (1 = the scene's white); before it from U[background_low, 1]."""
+    (1 = white); before it from U[background_low, 1]."""
     scene = tiny_scene()
     scene.train.alpha = torch.ones(scene.train.images.shape[:3])
     cfg = build_config("full", overrides={**TINY, "iters": 10, "background_low": 0.0, "background_late_from": 0.5,
