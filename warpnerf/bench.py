@@ -69,10 +69,10 @@ GEMM_SHAPE = (65536, 64, 64)
 @functools.lru_cache(maxsize=None)
 def _gather_kernel(wp_device: str):
     """The probe kernel, compiled/loaded on the calling thread (never by two chunk threads at once)."""
-    wp = devmod.init_warp()
     from .kernels.roofline import gather_sum as kernel
+    from .ops.launch import load_here
 
-    wp.load_module(kernel.module, device=wp_device)
+    load_here(kernel, wp_device)
     return kernel
 
 

@@ -211,11 +211,10 @@ class MeshRenderer:
 
         wp = init_warp()
         from warpnerf.kernels import raytrace
+        from warpnerf.ops.launch import load_here
 
         self._wp, self._kernel, self.device, self.shadows = wp, raytrace.render_mesh, device, shadows
-        # Compile/load now, on this thread: worker threads launching an unloaded module
-        # concurrently would each compile it.
-        wp.load_module(raytrace, device=device)
+        load_here(self._kernel, device)  # before the worker threads launch it
         arr = lambda x, dt: wp.array(x, dtype=dt, device=device)  # noqa: E731
         self._points = arr(mesh.points, wp.vec3)
         self._indices = arr(mesh.faces.reshape(-1), wp.int32)

@@ -54,7 +54,7 @@ _LOADED: set = set()  # (module id, device) pairs load_here has loaded
 def load_here(kernel, device: str = "cpu") -> None:
     """Compile or load ``kernel``'s module on the calling thread, once per module and device.
 
-    Call it before handing a kernel to the thread pool: Warp's first compile on a thread pays a
+    Call it before handing a kernel to worker threads: Warp's first compile on a thread pays a
     per-thread start-up (~2 s on 2 cores, measured), and two pool threads meeting a cold module both
     compile it (raymarch: 6.8 s each in the first training step, 1 s on one thread).
     """
@@ -193,9 +193,8 @@ class GridLauncher:
         self.meta = [wp.array(list(a), dtype=wp.int32, device=self.wp_device) for a in arrays] + list(scalars)
         self._levels: dict = {}
         self._weights: dict = {}
-        # compile/load now, on this thread: two threads hitting a cold module at once would both compile it
         for kernel in (self.fwd, self.bwd):
-            wp.load_module(kernel.module, device=self.wp_device)
+            load_here(kernel, self.wp_device)
         self._uploaded()
 
     def _uploaded(self) -> None:
