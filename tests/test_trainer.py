@@ -552,24 +552,31 @@ def test_opaque_photos_train_an_opaque_field():
     assert float(on.mean()) > 0.85 and float(off.mean()) < 0.4, (float(on.mean()), float(off.mean()))
 
 
+def backgrounds_drawn(monkeypatch, overrides: dict, steps) -> list:
+    """The random backgrounds the renderer receives at ``steps`` of a 10-step run on the tiny scene
+    with an alpha channel (as photos load: random backgrounds apply)."""
+    scene = tiny_scene()
+    scene.train.alpha = torch.ones(scene.train.images.shape[:3])
+    cfg = build_config("full", overrides={**TINY, "iters": 10, **overrides})
+    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
+    seen = []
+    render_rays = trainer.renderer.render_rays
+
+    def spy(o, d, weights, jitter, background, **kw):
+        seen.append(background.clone())
+        return render_rays(o, d, weights, jitter, background, **kw)
+
+    monkeypatch.setattr(trainer.renderer, "render_rays", spy)
+    for step in steps:
+        trainer.train_step(step)
+    return seen
+
+
 @pytest.mark.parametrize("low", [0.0, 0.6])
 def test_random_backgrounds_are_drawn_above_background_low(low, monkeypatch):
     """Each ray's random background has its channels in [background_low, 1] and spans that range
     (0 keeps instant-ngp's U[0, 1]; a higher bound keeps them light, closer to a white scene background)."""
-    scene = tiny_scene()
-    scene.train.alpha = torch.ones(scene.train.images.shape[:3])  # as photos load: random backgrounds apply
-    cfg = build_config("full", overrides={**TINY, "iters": 10, "background_low": low})
-    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
-    seen = {}
-    render_rays = trainer.renderer.render_rays
-
-    def spy(o, d, weights, jitter, background, **kw):
-        seen["background"] = background.clone()
-        return render_rays(o, d, weights, jitter, background, **kw)
-
-    monkeypatch.setattr(trainer.renderer, "render_rays", spy)
-    trainer.train_step(0)
-    bg = seen["background"]
+    (bg,) = backgrounds_drawn(monkeypatch, {"background_low": low}, [0])
     assert bg.shape[1] == 3 and bool(torch.isfinite(bg).all())
     assert float(bg.min()) >= low and float(bg.max()) <= 1.0
     # uniform on [low, 1]: the batch (hundreds of rays) reaches near both ends
@@ -580,22 +587,8 @@ def test_random_backgrounds_are_drawn_above_background_low(low, monkeypatch):
 def test_random_backgrounds_switch_to_background_low_late(monkeypatch):
     """From background_late_from * iters on, the backgrounds are drawn from U[background_low_late, 1]
     (1 = white); before it from U[background_low, 1]."""
-    scene = tiny_scene()
-    scene.train.alpha = torch.ones(scene.train.images.shape[:3])
-    cfg = build_config("full", overrides={**TINY, "iters": 10, "background_low": 0.0, "background_late_from": 0.5,
-                                          "background_low_late": 0.8})
-    trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
-    seen = []
-    render_rays = trainer.renderer.render_rays
-
-    def spy(o, d, weights, jitter, background, **kw):
-        seen.append(background.clone())
-        return render_rays(o, d, weights, jitter, background, **kw)
-
-    monkeypatch.setattr(trainer.renderer, "render_rays", spy)
-    for step in (4, 5, 9):
-        trainer.train_step(step)
-    early, late, last = seen
+    overrides = {"background_low": 0.0, "background_late_from": 0.5, "background_low_late": 0.8}
+    early, late, last = backgrounds_drawn(monkeypatch, overrides, [4, 5, 9])
     assert float(early.min()) < 0.05 and abs(float(early.mean()) - 0.5) < 0.03, float(early.mean())
     for bg in (late, last):
         assert float(bg.min()) >= 0.8 and float(bg.max()) <= 1.0
