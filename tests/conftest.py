@@ -4,8 +4,8 @@ import sys
 # tests import helpers (tiny_scene) from this folder
 sys.path.insert(0, os.path.dirname(__file__))
 
-# torch's OpenMP workers: the command line's short spin (warpnerf/openmp_wait.py), before torch loads
-from warpnerf.openmp_wait import set_wait_defaults  # noqa: E402  (imports nothing heavy)
+# torch's OpenMP workers: the command line's short spin (warpnerf/openmp.py), before torch loads
+from warpnerf.openmp import set_wait_defaults  # noqa: E402  (imports nothing heavy)
 
 set_wait_defaults()
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from test_cameras import _ring_cameras
 
-from warpnerf import cameras as C
+from warpnerf.geometry import cameras as C
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

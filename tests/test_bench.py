@@ -1,4 +1,4 @@
-"""Benchmark plumbing (warpnerf/bench.py): warm-up, median, --repeats honoured by both arms and by the
+"""Benchmark plumbing (warpnerf/studies/bench.py): warm-up, median, --repeats honoured by both arms and by the
 roofline; the roofline's gather probe (kernels/roofline.py) against a torch gather-sum."""
 
 import math
@@ -6,7 +6,9 @@ import math
 import pytest
 import torch
 
-from warpnerf import bench, openmp_wait
+from warpnerf import openmp
+
+from warpnerf.studies import bench
 
 
 def _recording_median(monkeypatch):
@@ -50,7 +52,7 @@ def test_encoding_bench_honours_repeats_for_both_arms(monkeypatch):
     assert roof["encoding_fwd_fraction"] > 0 and math.isfinite(roof["encoding_fwd_fraction"])
     assert "roofline: machine" in bench.format_encoding(res)
     # the figures move by ~25 % with torch's OpenMP wait setting: recorded beside them
-    assert res["openmp_wait"] == openmp_wait.describe() and f"OpenMP wait {res['openmp_wait']}" in \
+    assert res["openmp_wait"] == openmp.describe() and f"OpenMP wait {res['openmp_wait']}" in \
         bench.format_encoding(res)
 
 
@@ -104,22 +106,22 @@ def test_format_step_prints_the_roofline_line():
 
 
 def test_openmp_wait_defaults_and_their_description(monkeypatch):
-    for k in openmp_wait.WAIT_SETTINGS:  # set first, so that monkeypatch restores each afterwards
+    for k in openmp.WAIT_SETTINGS:  # set first, so that monkeypatch restores each afterwards
         monkeypatch.setenv(k, "x")
         monkeypatch.delenv(k)
-    assert openmp_wait.describe() == "default"
-    assert openmp_wait.set_wait_defaults() is True
-    assert openmp_wait.describe() == "GOMP_SPINCOUNT=10000 KMP_BLOCKTIME=0"
+    assert openmp.describe() == "default"
+    assert openmp.set_wait_defaults() is True
+    assert openmp.describe() == "GOMP_SPINCOUNT=10000 KMP_BLOCKTIME=0"
     monkeypatch.delenv("KMP_BLOCKTIME")
     monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")  # any wait setting of the user's: nothing changes
-    assert openmp_wait.set_wait_defaults() is False
-    assert openmp_wait.describe() == "OMP_WAIT_POLICY=PASSIVE GOMP_SPINCOUNT=10000"
+    assert openmp.set_wait_defaults() is False
+    assert openmp.describe() == "OMP_WAIT_POLICY=PASSIVE GOMP_SPINCOUNT=10000"
 
 
 def test_twin_swap_replaces_the_ops_the_renderer_calls():
     """bench step's torch arm must swap the names the renderer really uses (it broke silently once,
     when the renderer moved to march_rays_within_budget)."""
-    from warpnerf import encoders, renderer
+    from warpnerf.model import encoders, renderer
 
     names = [(encoders, "hashgrid_encode"), (renderer, "march_rays_within_budget"), (renderer, "composite_rays")]
     before = [getattr(m, n) for m, n in names]
@@ -132,7 +134,7 @@ def test_twin_swap_replaces_the_ops_the_renderer_calls():
 def test_render_bench_times_test_views_of_a_run(chair_run):
     """bench render: rounds and every-sample renders of the same views, same image quality,
     the rounds evaluating fewer samples per pixel; bad input is a clear error."""
-    from warpnerf.bench import bench_render, format_render
+    from warpnerf.studies.bench import bench_render, format_render
 
     rounds = bench_render(str(chair_run), views=2, device="cpu")
     every = bench_render(str(chair_run), views=2, device="cpu", every_sample=True)

@@ -1,4 +1,4 @@
-"""Tests for warpnerf.cameras: Lie-group maps, BARF noise / correction, Sim(3) alignment, errors."""
+"""Tests for warpnerf.geometry.cameras: Lie-group maps, BARF noise / correction, Sim(3) alignment, errors."""
 
 import math
 import numpy as np
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf import cameras as C
+from warpnerf.geometry import cameras as C
 
 DTYPES = [torch.float32, torch.float64]
 # Round-trip tolerances per dtype; measured max errors over the cases below were 7.2e-7 (float32)

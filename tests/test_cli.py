@@ -96,8 +96,8 @@ def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
     assert code == 0, err[-2000:]
     assert json.loads((out / "eval" / "metrics.json").read_text())["psnr"] == pytest.approx(m["psnr"], abs=1e-4)
     # `table --reuse` reads a finished run only when its configuration is identical
-    from warpnerf.config import build_config, load_toml
-    from warpnerf.run import finished_metrics
+    from warpnerf.train.config import build_config, load_toml
+    from warpnerf.runs.run import finished_metrics
 
     values = load_toml(str(out / "config.toml"))
     cfg = build_config(values.pop("task"), overrides=values)
@@ -113,7 +113,8 @@ def test_threads_option_bounds_torch_too():
 
     import torch
 
-    from warpnerf import cli, device
+    from warpnerf import device
+    from warpnerf.cli import app as cli
 
     before = (device.num_threads(), torch.get_num_threads())
     try:
@@ -133,8 +134,8 @@ class Probe(importlib.abc.MetaPathFinder):
             seen.append([os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME")])
         return None
 sys.meta_path.insert(0, Probe())
-from warpnerf import cli
-cli.build_parser()
+from warpnerf.cli import app
+app.build_parser()
 import torch
 print(seen[0])
 """
@@ -156,7 +157,7 @@ def test_cli_sets_a_short_openmp_spin_before_torch_loads(user):
 
 
 def test_summary_names_unconverged_pose_views():
-    from warpnerf.cli import _summary
+    from warpnerf.cli.app import _summary
 
     m = {"psnr": 33.1, "ssim": 0.98, "iters": 3000, "train_seconds": 300.0, "render_seconds_per_view": 0.3,
          "rot_err_deg": 0.447, "trans_err_x100": 0.722, "rot_err_deg_median": 0.229, "trans_err_x100_median": 0.61,
@@ -172,7 +173,7 @@ def test_summary_names_unconverged_pose_views():
 
 
 def test_summary_names_reregistered_views():
-    from warpnerf.cli import _summary
+    from warpnerf.cli.app import _summary
 
     m = {"psnr": 33.1, "ssim": 0.98, "iters": 3000, "train_seconds": 300.0, "render_seconds_per_view": 0.3,
          "rot_err_deg": 0.066, "trans_err_x100": 0.462, "unconverged_views": [],
@@ -186,12 +187,12 @@ def test_summary_names_reregistered_views():
 
 def test_eval_prints_pose_errors(monkeypatch, capsys):
     """``warpnerf eval`` on a pose run prints the re-evaluated pose errors, not only PSNR / SSIM."""
-    import warpnerf.run
+    import warpnerf.runs.run
     from warpnerf.cli import main
 
     res = {"psnr": 21.29, "ssim": 0.587, "rot_err_deg": 0.398, "trans_err_x100": 1.32, "unconverged_views": [],
            "pose_alignment": "orientations"}
-    monkeypatch.setattr(warpnerf.run, "evaluate_run", lambda run, progress=True, device=None: res)
+    monkeypatch.setattr(warpnerf.runs.run, "evaluate_run", lambda run, progress=True, device=None: res)
     assert main(["eval", "--run", "R", "--quiet"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert line == ("PSNR 21.29 dB; SSIM 0.587; rot err 0.398 deg (orientations aligned); "

@@ -16,7 +16,7 @@ from warpnerf.data.colmap import load_colmap
 from warpnerf.data.normalize import normalization_from_cameras
 from warpnerf.data.resolve import dataset_scenes, describe_scenes, load_scene, scene_layout
 from warpnerf.data.transforms_json import load_transforms_json
-from warpnerf.renderer import pixel_rays
+from warpnerf.model.renderer import pixel_rays
 
 RES = 40
 COUNTS = (10, 2, 4)
@@ -187,10 +187,10 @@ TRAIN = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128
 
 def train_psnr(scene):
     from warpnerf import device
-    from warpnerf.config import build_config
-    from warpnerf.evaluate import evaluate
-    from warpnerf.tasks import make_task
-    from warpnerf.trainer import Trainer
+    from warpnerf.train.config import build_config
+    from warpnerf.train.evaluate import evaluate
+    from warpnerf.train.tasks import make_task
+    from warpnerf.train.trainer import Trainer
 
     before = device.num_threads()
     device.set_num_threads(1)  # fixed thread count: identical float reductions in both runs

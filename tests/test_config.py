@@ -5,9 +5,9 @@ from dataclasses import fields
 
 import pytest
 
-from warpnerf import config as C
-from warpnerf.cli import build_parser
-from warpnerf.cli_config import config_overrides, flag_name
+from warpnerf.train import config as C
+from warpnerf.cli.app import build_parser
+from warpnerf.cli.flags import config_overrides, flag_name
 
 
 def train_parser() -> argparse.ArgumentParser:
@@ -84,12 +84,13 @@ def test_flags_round_trip_into_the_config(tmp_path):
 
 
 def test_choices_come_from_the_code_registries():
-    from warpnerf import freq_mask, tasks
+    from warpnerf.model import g2fr
+    from warpnerf.train import tasks
 
     actions = train_actions()
     assert list(actions["--task"].choices) == list(tasks.TASKS)
     assert list(actions["--model"].choices) == list(C.MODELS)
-    assert list(actions["--g2fr-mask"].choices) == list(freq_mask.MASK_MODES)
+    assert list(actions["--g2fr-mask"].choices) == list(g2fr.MASK_MODES)
     with pytest.raises(SystemExit):
         parse("--g2fr-mask", "smooth")
     with pytest.raises(SystemExit):
@@ -112,8 +113,8 @@ def test_toml_values_are_checked_against_the_annotations(tmp_path):
 
 
 def test_g2fr_beta_has_one_default():
-    from warpnerf import spectrum
-    from warpnerf.freq_mask import G2fRSchedule
+    from warpnerf.studies import spectrum
+    from warpnerf.model.g2fr import G2fRSchedule
 
     assert C.TrainConfig().g2fr_beta == C.G2FR_BETA
     assert G2fRSchedule(4, 10).beta == C.G2FR_BETA

@@ -3,7 +3,7 @@ invertible; disparity spacing becomes uniform spacing after contraction."""
 
 import torch
 
-from warpnerf.contraction import contract, disparity_spaced, uncontract
+from warpnerf.geometry.contraction import contract, disparity_spaced, uncontract
 
 
 def test_identity_inside_unit_ball():

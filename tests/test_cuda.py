@@ -39,7 +39,7 @@ def _run_both(fn):
 
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_hashgrid_matches_cpu(dim):
-    from warpnerf.freq_mask import LevelWeights
+    from warpnerf.model.g2fr import LevelWeights
     from warpnerf.ops.hashgrid import HashGridSpec, hashgrid_encode
 
     spec = HashGridSpec.create(dim, n_levels=6, n_features=2, log2_table_size=10, base_resolution=4, max_resolution=96)
@@ -153,7 +153,7 @@ def test_composite_matches_cpu():
 
 
 def test_occupancy_update_matches_cpu():
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     def ball(x):
         return 50.0 * (x.norm(dim=-1) < 0.6).float()
@@ -182,7 +182,7 @@ def test_mesh_renderer_matches_cpu():
 
 
 def _tiny_cfg(**kw):
-    from warpnerf.config import build_config
+    from warpnerf.train.config import build_config
 
     values = dict(scene="chair", builtin_resolution=32, levels=8, log2_table_size=14, base_resolution=8,
                   max_resolution=128, hidden=32, target_samples=4096, batch_rays=256, occ_resolution=32,
@@ -194,9 +194,9 @@ def _tiny_cfg(**kw):
 def _trainer(cfg, device, cache):
     import os
 
-    from warpnerf.run import load_scene_for
-    from warpnerf.tasks import make_task
-    from warpnerf.trainer import Trainer
+    from warpnerf.runs.run import load_scene_for
+    from warpnerf.train.tasks import make_task
+    from warpnerf.train.trainer import Trainer
 
     os.environ["WARPNERF_CACHE"] = str(cache)
     return Trainer(cfg, load_scene_for(cfg, progress=False), make_task(cfg), device)

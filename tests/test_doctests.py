@@ -28,7 +28,7 @@ MODULES = modules_with_examples()
 
 def test_examples_are_found():
     # the modules documented with examples today; a module losing all of them should be a choice
-    for name in ("warpnerf.config", "warpnerf.ops.hashgrid", "warpnerf.ops.composite", "warpnerf.occupancy"):
+    for name in ("warpnerf.train.config", "warpnerf.ops.hashgrid", "warpnerf.ops.composite", "warpnerf.model.occupancy"):
         assert name in MODULES
 
 

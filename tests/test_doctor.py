@@ -2,7 +2,9 @@
 
 import torch
 
-from warpnerf import doctor, openmp_wait
+from warpnerf import openmp
+
+from warpnerf.cli import doctor
 from warpnerf.cli import main
 
 
@@ -19,7 +21,7 @@ def test_doctor_prints_one_screen_and_exits_0(capsys):
     if not torch.cuda.is_available():
         assert "no CUDA device" in out or "sm_" in out
     assert "problem" in out  # "problems  none found" or one "problem" line each
-    assert f"OpenMP wait {openmp_wait.describe()}" in out
+    assert f"OpenMP wait {openmp.describe()}" in out
 
 
 def _info(**kw):

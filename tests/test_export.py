@@ -7,7 +7,7 @@ import torch
 pytest.importorskip("skimage")
 pytest.importorskip("plyfile")
 
-from warpnerf import export as E  # noqa: E402
+from warpnerf.outputs import export as E  # noqa: E402
 from warpnerf.cli import main  # noqa: E402
 from warpnerf.data.builtin import scene_mesh  # noqa: E402
 
@@ -30,8 +30,8 @@ def test_sphere_mesh_from_an_analytic_density():
 
     from types import SimpleNamespace
 
-    from warpnerf.data.rayspace import RaySpace
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.geometry.rayspace import RaySpace
+    from warpnerf.model.occupancy import OccupancyGrid
 
     tr = SimpleNamespace(field=Ball(), occupancy=OccupancyGrid((-1, -1, -1, 1, 1, 1), 8), device=torch.device("cpu"),
                          cfg=SimpleNamespace(iters=1), level_weights=lambda s: None, scene=SimpleNamespace(ray_space=RaySpace()))

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from warpnerf.config import G2FR_BETA
-from warpnerf.freq_mask import MASK_MODES, G2fRSchedule, LevelWeights, g2fr_level_weight, g2fr_tau, g2fr_weights
+from warpnerf.train.config import G2FR_BETA
+from warpnerf.model.g2fr import MASK_MODES, G2fRSchedule, LevelWeights, g2fr_level_weight, g2fr_tau, g2fr_weights
 
 
 def test_tau_sweeps_levels_over_beta_of_training():
@@ -111,10 +111,10 @@ def test_trainer_weights_are_the_ones_the_kernel_receives(monkeypatch, model):
     """Issue 13: the weights the trainer computes at a step reach the encoder's kernel unchanged,
     and only the levels they switch on are launched."""
     from tiny_scene import tiny_scene
-    from warpnerf.config import build_config
+    from warpnerf.train.config import build_config
     from warpnerf.ops import launch as launch_mod
-    from warpnerf.tasks import make_task
-    from warpnerf.trainer import Trainer
+    from warpnerf.train.tasks import make_task
+    from warpnerf.train.trainer import Trainer
 
     cfg = build_config("full", overrides=dict(
         model=model, levels=6, log2_table_size=12, base_resolution=4, max_resolution=64, cp_rank=2,

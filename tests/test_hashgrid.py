@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from warpnerf.freq_mask import G2fRSchedule, g2fr_level_weight, g2fr_tau, g2fr_weights
+from warpnerf.model.g2fr import G2fRSchedule, g2fr_level_weight, g2fr_tau, g2fr_weights
 from warpnerf.ops.hashgrid import HashGridSpec, hashgrid_encode
 from warpnerf.ops.reference import hashgrid as twin
 
@@ -209,7 +209,7 @@ def test_tau_follows_eq15():
 
 
 def test_cosine_weights_at_hand_computed_points():
-    # level i ramps over i-1 <= tau < i (BARF's 0-based form of eq. 15, see freq_mask docstring)
+    # level i ramps over i-1 <= tau < i (BARF's 0-based form of eq. 15, see the warpnerf.model.g2fr docstring)
     assert g2fr_level_weight(1, 0.0) == 1.0  # w_1 = 1 always
     assert g2fr_level_weight(3, 1.99) == 0.0  # before the ramp
     assert g2fr_level_weight(3, 2.0) == pytest.approx(0.0)  # ramp starts

@@ -8,8 +8,9 @@ import pytest
 import torch
 from fake_scenes import random_rotations, write_llff
 
-from warpnerf.data import DatasetError, load_llff, ndc_rays
+from warpnerf.data import DatasetError, load_llff
 from warpnerf.data.llff import average_pose
+from warpnerf.geometry.rayspace import ndc_rays
 
 N = 10
 

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from warpnerf.cameras import look_at
+from warpnerf.geometry.cameras import look_at
 from warpnerf.data import builtin
 
 

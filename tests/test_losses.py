@@ -1,9 +1,9 @@
-"""warpnerf.losses: the weights against the composite op, the distortion loss against its definition."""
+"""warpnerf.model.losses: the weights against the composite op, the distortion loss against its definition."""
 
 import pytest
 import torch
 
-from warpnerf.losses import distortion_loss, packed_weights
+from warpnerf.model.losses import distortion_loss, packed_weights
 from warpnerf.ops.composite import composite_rays
 from warpnerf.ops.raymarch import PackedSamples
 

@@ -8,7 +8,7 @@ import types
 import pytest
 import torch
 
-from warpnerf import metrics as M
+from warpnerf.train import metrics as M
 
 
 @pytest.fixture(autouse=True)

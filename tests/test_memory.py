@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from warpnerf.trainer import peak_rss_mb, start_memory_window
+from warpnerf.train.trainer import peak_rss_mb, start_memory_window
 
 
 @pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK), reason="needs Linux /proc/self/clear_refs")

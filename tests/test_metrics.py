@@ -1,4 +1,4 @@
-"""Tests for warpnerf.metrics: PSNR, SSIM (against a float64 direct-sum reference), LPIPS fallback."""
+"""Tests for warpnerf.train.metrics: PSNR, SSIM (against a float64 direct-sum reference), LPIPS fallback."""
 
 import importlib.util
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf import metrics as M
+from warpnerf.train import metrics as M
 
 
 def _image(h=24, w=29, seed=0, dtype=torch.float32):

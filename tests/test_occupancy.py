@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from warpnerf.occupancy import OccupancyGrid
+from warpnerf.model.occupancy import OccupancyGrid
 from warpnerf.ops.raymarch import march_rays
 
 AABB = (-1.0, -0.5, -2.0, 1.0, 1.5, 0.0)  # not a cube, not centred: catches axis and layout mix-ups

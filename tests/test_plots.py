@@ -1,4 +1,4 @@
-"""Smoke tests for warpnerf.plots: each figure is written as a non-trivial PNG."""
+"""Smoke tests for warpnerf.train.plots: each figure is written as a non-trivial PNG."""
 
 import math
 import subprocess
@@ -9,8 +9,8 @@ import torch
 
 pytest.importorskip("matplotlib")
 
-from warpnerf import cameras as C  # noqa: E402
-from warpnerf import plots  # noqa: E402
+from warpnerf.geometry import cameras as C  # noqa: E402
+from warpnerf.train import plots  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -22,7 +22,7 @@ def _is_png(path):
 
 
 def test_import_warpnerf_does_not_import_matplotlib():
-    code = "import sys, warpnerf, warpnerf.cameras, warpnerf.metrics, warpnerf.plots; print('matplotlib' in sys.modules)"
+    code = "import sys, warpnerf, warpnerf.geometry.cameras, warpnerf.train.metrics, warpnerf.train.plots; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

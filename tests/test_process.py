@@ -43,7 +43,7 @@ def test_garden_render_is_textured_everywhere():
 
 def test_process_registers_every_rendered_photo_and_recovers_the_poses(tmp_path):
     pytest.importorskip("pycolmap")
-    from warpnerf.cameras import evaluate_poses
+    from warpnerf.geometry.cameras import evaluate_poses
 
     c2w = garden_cameras()
     assert len(c2w) >= 30
@@ -66,7 +66,7 @@ def test_process_registers_every_rendered_photo_and_recovers_the_poses(tmp_path)
 
 def test_mapping_failure_says_how_many_registered(tmp_path):
     pytest.importorskip("pycolmap")
-    from warpnerf.process import process_images
+    from warpnerf.data.process import process_images
 
     rng = np.random.default_rng(0)
     photos = tmp_path / "noise"

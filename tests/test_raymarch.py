@@ -247,7 +247,7 @@ def test_contracted_matches_twin_exactly(use_grid, use_jitter, cap):
 def test_contracted_march_covers_the_ray_in_growing_steps():
     """Without a grid the samples tile [near + u dt, far] end to end; each is ~ one step long in the
     contracted space (checked against float64 contract()), also on rays passing the ball sideways."""
-    from warpnerf.contraction import contract
+    from warpnerf.geometry.contraction import contract
 
     origins, dirs, _, jitter = contracted_rays(2, 64)
     step = 0.02
@@ -279,7 +279,7 @@ def test_contracted_march_refuses_an_infinite_far():
 def test_contracted_grid_cells_are_looked_up_in_contracted_space():
     """A single occupied cell far out in contracted space (a 'distant background' shell cell) is
     found by a ray from the centre towards it, at the world distance the inverse contraction gives."""
-    from warpnerf.contraction import uncontract
+    from warpnerf.geometry.contraction import uncontract
 
     res = 8
     bitfield = torch.zeros(res**3, dtype=torch.uint8)
@@ -291,7 +291,7 @@ def test_contracted_grid_cells_are_looked_up_in_contracted_space():
     assert s.t_starts.numel() > 0
     mid = 0.5 * (s.t_starts + s.t_ends)
     c = (o + d * mid[:, None])
-    from warpnerf.contraction import contract
+    from warpnerf.geometry.contraction import contract
 
     cc = contract(c)
     assert bool(((cc[:, 0] >= 1.5) & (cc[:, 0] < 2.0)).all())
@@ -367,7 +367,7 @@ def test_march_near_the_occupied_box_yields_the_same_samples(use_jitter):
     """march_rays with ``occupied_box`` (what training passes) skips the candidates far from the
     occupied cells and emits exactly the samples of the full march, also for rays that graze
     the box's faces and for a box computed by the occupancy grid itself."""
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     origins, dirs, _, jitter = random_rays(7, 1000)
     res = 16
@@ -415,7 +415,7 @@ def test_march_across_empty_blocks_yields_the_same_samples(res, block, use_jitte
     instead of testing every candidate there: exactly the samples of the full march, for any
     block size (also one that does not divide the resolution), with or without jitter and for
     rays along the box's axes (d_a = 0)."""
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     origins, dirs, _, jitter = random_rays(8, 1500)
     grid = OccupancyGrid(AABB, resolution=res)
@@ -436,7 +436,7 @@ def test_march_across_empty_blocks_yields_the_same_samples(res, block, use_jitte
 def test_window_march_across_empty_blocks_yields_the_same_samples(window):
     """The rendering march with ``occupied_blocks`` and ``occupied_box``: window after window the
     samples of the full march, and the same counts and resume state as the twin."""
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     origins, dirs, _, _ = random_rays(9, 600)
     grid = OccupancyGrid(AABB, resolution=24)
@@ -451,7 +451,7 @@ def test_occupied_blocks_mark_every_block_with_an_occupied_cell():
     """Block (bx, by, bz) is 1 exactly when some cell (x, y, z) with x // b = bx, ... is occupied
     (brute force over the cells); blocks past the grid's edge (res not a multiple of b) count
     only the cells inside; the blocks follow every change of the bitfield like the box."""
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     res, b = 20, 8
     grid = OccupancyGrid((0, 0, 0, 1, 1, 1), resolution=res)
@@ -474,7 +474,7 @@ def test_occupied_blocks_mark_every_block_with_an_occupied_cell():
 def test_occupied_box_follows_every_change_of_the_bitfield():
     """The grid computes its occupied box once per bitfield state: a grid update, an in-place
     torch change and a new tensor each give a fresh box."""
-    from warpnerf.occupancy import OccupancyGrid
+    from warpnerf.model.occupancy import OccupancyGrid
 
     grid = OccupancyGrid((0, 0, 0, 1, 1, 1), resolution=8)
     assert grid.occupied_box() == (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)

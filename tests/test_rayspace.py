@@ -1,4 +1,4 @@
-"""warpnerf.data.rayspace: every scene owns its ray space; NDC is bit-identical to the formula the
+"""warpnerf.geometry.rayspace: every scene owns its ray space; NDC is bit-identical to the formula the
 trainer and renderer used before the ray space existed; the euclidean space leaves rays alone."""
 
 import math
@@ -8,9 +8,9 @@ import pytest
 import torch
 from fake_scenes import write_blender, write_llff
 
-from warpnerf.data import RaySpace, load_blender, load_llff
-from warpnerf.data.rayspace import NDC_AABB, ndc_extent, ndc_rays
-from warpnerf.renderer import pixel_rays
+from warpnerf.data import load_blender, load_llff
+from warpnerf.geometry.rayspace import NDC_AABB, RaySpace, ndc_extent, ndc_rays
+from warpnerf.model.renderer import pixel_rays
 
 
 def previous_ndc(rays_o, rays_d, focal, width, height, near=1.0):

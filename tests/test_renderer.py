@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from warpnerf.data.rayspace import RaySpace
-from warpnerf.occupancy import OccupancyGrid
-from warpnerf.renderer import Renderer, default_step
+from warpnerf.geometry.rayspace import RaySpace
+from warpnerf.model.occupancy import OccupancyGrid
+from warpnerf.model.renderer import Renderer, default_step
 
 
 class Blobs(torch.nn.Module):
@@ -115,9 +115,9 @@ def test_skipping_empty_blocks_renders_the_same_image():
 def test_field_without_autograd_evaluates_in_row_blocks_with_the_same_values():
     """Under no_grad the MLPs run on 4096 rows at a time (cache-sized): values equal the
     autograd path's to the bit."""
-    from warpnerf.field import GridField, in_row_blocks
+    from warpnerf.model.field import GridField, in_row_blocks
     from warpnerf.ops.hashgrid import HashGridSpec
-    from warpnerf.encoders import HashGridEncoder
+    from warpnerf.model.encoders import HashGridEncoder
 
     torch.manual_seed(0)
     spec = HashGridSpec.create(3, 4, 2, 12, 4, 64)
@@ -143,8 +143,8 @@ def test_density_of_is_the_geometry_density_and_its_gradient():
     """``GridField.density_of`` (the occupancy grid's and the compaction pass's density) computes
     only the first output of the density MLP's last layer: the same densities as ``geometry_of``
     up to float summation order, with and without autograd, and the same gradients."""
-    from warpnerf.encoders import HashGridEncoder
-    from warpnerf.field import GridField
+    from warpnerf.model.encoders import HashGridEncoder
+    from warpnerf.model.field import GridField
     from warpnerf.ops.hashgrid import HashGridSpec
 
     torch.manual_seed(0)
@@ -196,8 +196,8 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     grid encoding (``Renderer.compact_training``): the pixels and every gradient (grid, MLPs,
     ray origins: the pose task's path) equal those of differentiating every sample, up to the
     MLPs' float summation order over fewer rows; the distortion loss too."""
-    from warpnerf.encoders import HashGridEncoder
-    from warpnerf.field import GridField
+    from warpnerf.model.encoders import HashGridEncoder
+    from warpnerf.model.field import GridField
     from warpnerf.ops.hashgrid import HashGridSpec
 
     r, c2w = renderer_for("euclidean")
@@ -227,7 +227,7 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
     assert cut.n_active < 0.6 * cut.n_samples, (cut.n_active, cut.n_samples)
     torch.testing.assert_close(cut.rgb, full.rgb, rtol=0, atol=1e-6)
     torch.testing.assert_close(cut.opacity, full.opacity, rtol=0, atol=1e-6)
-    # the distortion loss (warpnerf.losses) sees the same weights: those behind are exactly 0
+    # the distortion loss (warpnerf.model.losses) sees the same weights: those behind are exactly 0
     assert float(full.distortion.detach().max()) > 0
     torch.testing.assert_close(cut.distortion, full.distortion, rtol=1e-5, atol=1e-7)
     for i, (a, b) in enumerate(zip(grads_cut, grads_full)):

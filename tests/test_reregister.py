@@ -1,4 +1,4 @@
-"""Re-registration of training views left in a wrong basin (warpnerf/reregister.py), on a field
+"""Re-registration of training views left in a wrong basin (warpnerf/train/reregister.py), on a field
 trained with known poses: the search must bring a far-off view back and leave the others alone."""
 
 import math
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from test_trainer import make_trainer
-from warpnerf.cameras import PoseCorrection, perturb_poses, rotation_error_deg
-from warpnerf.reregister import reregister_views, view_losses
+from warpnerf.geometry.cameras import PoseCorrection, perturb_poses, rotation_error_deg
+from warpnerf.train.reregister import reregister_views, view_losses
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_a_far_off_view_is_found_by_its_loss_and_registered_again(trained):
 def test_a_slow_view_refined_under_the_ratio_in_place_is_not_searched(trained, monkeypatch):
     """A flagged view that the in-place refinement brings under the flag ratio was slow, not lost:
     no search round (mic: such views gained nothing in 8 rounds and converged in training)."""
-    import warpnerf.reregister as rr
+    import warpnerf.train.reregister as rr
 
     monkeypatch.setattr(rr, "OK_RATIO", 0.01)  # a search would run whatever the refinement reached
     slow = 4
@@ -95,7 +95,7 @@ def test_nothing_is_flagged_when_every_view_is_registered(trained):
 
 
 def test_the_pose_task_searches_once_at_its_fraction_of_the_run(monkeypatch, capsys):
-    import warpnerf.reregister as rr
+    import warpnerf.train.reregister as rr
 
     calls = []
 
@@ -120,7 +120,7 @@ def test_the_pose_task_searches_once_at_its_fraction_of_the_run(monkeypatch, cap
 def test_passes_search_again_at_multiples_of_the_fraction(monkeypatch):
     """``pose_reregister_passes``: views that only stand out once the field is sharp (mic, Mtrf seed 1:
     not above 5x at a third of the run, 22-38x at the end) are looked for again at 2x the fraction."""
-    import warpnerf.reregister as rr
+    import warpnerf.train.reregister as rr
 
     calls = []
     monkeypatch.setattr(rr, "reregister_views", lambda trainer, c, s, o, step, ratio, lr: calls.append(step) or [
@@ -137,7 +137,7 @@ def test_passes_search_again_at_multiples_of_the_fraction(monkeypatch):
 
 
 def test_reregistration_is_off_by_default_and_checked():
-    from warpnerf.config import ConfigError, build_config
+    from warpnerf.train.config import ConfigError, build_config
 
     assert build_config("pose").pose_reregister_at == 0.0
     with pytest.raises(ConfigError, match="pose_reregister_at must be in"):
@@ -152,8 +152,8 @@ def test_reregistration_is_off_by_default_and_checked():
 @pytest.mark.parametrize("at, passes, steps", [(0.3333, 2, [999, 1999]), (0.5, 2, [1499]), (0.34, 3, [1019, 2039]),
                                                (0.25, 1, [749]), (0.0, 2, [])])
 def test_passes_past_the_end_of_the_run_are_dropped(at, passes, steps):
-    from warpnerf.config import build_config
-    from warpnerf.tasks import make_task
+    from warpnerf.train.config import build_config
+    from warpnerf.train.tasks import make_task
 
     cfg = build_config("pose", overrides={"iters": 3000, "pose_reregister_at": at, "pose_reregister_passes": passes})
     assert make_task(cfg).reregister_steps() == steps
@@ -162,7 +162,7 @@ def test_passes_past_the_end_of_the_run_are_dropped(at, passes, steps):
 def test_search_rounds_refine_in_two_stages_on_one_schedule():
     """Successive halving: all drawn poses for HALVING_STEPS steps, then the KEEP lowest for the rest,
     on the one-stage rate schedule (lr -> lr / 10 over REFINE_STEPS) split where the stages meet."""
-    import warpnerf.reregister as rr
+    import warpnerf.train.reregister as rr
 
     calls = []
 

@@ -290,8 +290,8 @@ def test_out_is_foreign_folder(tmp_path):
 
 def _fake_run(folder, cfg_overrides=None, finished=True, checkpoint_bytes=None):
     """A run folder as train writes it (config.toml, metrics.json with the config hash)."""
-    from warpnerf.config import build_config
-    from warpnerf.run import config_hash, write_config
+    from warpnerf.train.config import build_config
+    from warpnerf.runs.run import config_hash, write_config
 
     os.makedirs(folder, exist_ok=True)
     cfg = build_config("full", overrides={"out": str(folder), "iters": 2, "video_frames": 0, "threads": 1,
@@ -388,8 +388,8 @@ def test_eval_refuses_unfinished_and_truncated(tmp_path):
 
 
 def test_config_toml_round_trips_quotes_and_backslashes(tmp_path):
-    from warpnerf.run import config_hash, read_run_config, write_config
-    from warpnerf.config import build_config
+    from warpnerf.runs.run import config_hash, read_run_config, write_config
+    from warpnerf.train.config import build_config
 
     out = str(tmp_path / 'we"ird\\run')
     cfg = build_config("full", overrides={"out": out, "data_root": 'C:\\data "x"'})
@@ -403,7 +403,7 @@ def test_config_toml_round_trips_quotes_and_backslashes(tmp_path):
 def test_checkpoint_is_atomic_and_keeps_previous(tmp_path):
     import torch
 
-    from warpnerf.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+    from warpnerf.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
     path = str(tmp_path / "c.pt")
     save_checkpoint(path, {"a": torch.arange(3)})
@@ -413,7 +413,7 @@ def test_checkpoint_is_atomic_and_keeps_previous(tmp_path):
         fh.write(b"half")
         raise OSError("disk full")
 
-    from warpnerf.checkpoint import atomic_write_bytes
+    from warpnerf.train.checkpoint import atomic_write_bytes
 
     with pytest.raises(OSError):
         atomic_write_bytes(path, boom)

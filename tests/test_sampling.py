@@ -1,11 +1,11 @@
-"""Error-guided pixel sampling (warpnerf.sampling.ErrorMap): where it draws, its weights, its state."""
+"""Error-guided pixel sampling (warpnerf.train.error_map.ErrorMap): where it draws, its weights, its state."""
 
 import io
 
 import pytest
 import torch
 
-from warpnerf.sampling import ErrorMap
+from warpnerf.train.error_map import ErrorMap
 
 
 def peaked_map(share=0.5, views=2, h=10, w=13, cells=4):
@@ -73,7 +73,7 @@ def test_a_fitted_map_samples_uniformly():
 
 
 def test_huge_captures_get_fewer_cells_per_image():
-    from warpnerf.sampling import MAX_CELLS
+    from warpnerf.train.error_map import MAX_CELLS
 
     em = ErrorMap(5000, 300, 400, share=0.5)  # 7-pixel cells, 43 x 58 each: 12.5M categories, fine
     assert (em.cell, em.rows, em.cols) == (7, 43, 58)

@@ -1,4 +1,4 @@
-"""Claims of G²fR sections 3.3-4.2, checked with numbers (warpnerf.spectrum).
+"""Claims of G²fR sections 3.3-4.2, checked with numbers (warpnerf.studies.spectrum).
 
 Frequencies: omega in rad per unit length, nu / freqs in cycles per unit length.
 Runtime: ~5 s (three 400-step 1-D fits of ~0.6 s each plus Warp start-up).
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf import spectrum as S
+from warpnerf.studies import spectrum as S
 from warpnerf.ops.hashgrid import hashgrid_encode
 from warpnerf.ops.hashgrid_spec import HashGridSpec
 

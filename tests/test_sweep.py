@@ -15,9 +15,9 @@ import time
 
 import pytest
 
-from warpnerf.config import ConfigError
-from warpnerf.sweep import SweepError, SweepSpec, expand, load_spec, run_sweep
-from warpnerf.table import tables_markdown
+from warpnerf.train.config import ConfigError
+from warpnerf.studies.sweep import SweepError, SweepSpec, expand, load_spec, run_sweep
+from warpnerf.studies.table import tables_markdown
 
 # the shared tiny field of tests/chair_run.py, 20 steps, one thread per run (num_cpus = 1)
 SPEC = """out = "{out}"
@@ -77,7 +77,7 @@ def test_spec_expands_into_runs_and_rejects_bad_keys(tmp_path):
 @pytest.mark.parametrize("name", ["nerf_synthetic_pose", "lego_fewshot_curve"])
 def test_shipped_specs_expand(name):
     """The specs under configs/sweeps load by name and expand into valid run configurations."""
-    from warpnerf.sweep import shipped_spec
+    from warpnerf.studies.sweep import shipped_spec
 
     path = shipped_spec(name)
     assert path is not None, name
@@ -156,7 +156,7 @@ def test_failing_run_is_reported_and_others_finish(restarted_sweep, capsys):
         assert "\n" not in r.error and r.error.startswith("DatasetError") and "nosuchscene" in r.error
     assert all(r.status in ("done", "skipped") for r in res["results"] if r.run.scene == "chair")
     assert "Failed runs (n/a): nosuchscene_fewshot_ngp_g2fr_s0" in res["table"]
-    from warpnerf.sweep import report_failures
+    from warpnerf.studies.sweep import report_failures
 
     assert report_failures(res["failed"]) == 1
     err = capsys.readouterr().err

@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from tiny_scene import tiny_scene
-from warpnerf.config import ConfigError, build_config
-from warpnerf.encoders import make_grid_encoder
-from warpnerf.monitor import TAGS, Monitor, lipschitz_bound
-from warpnerf.tasks import make_task
-from warpnerf.trainer import Trainer
+from warpnerf.train.config import ConfigError, build_config
+from warpnerf.model.encoders import make_grid_encoder
+from warpnerf.train.monitor import TAGS, Monitor, lipschitz_bound
+from warpnerf.train.tasks import make_task
+from warpnerf.train.trainer import Trainer
 
 TINY = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128, hidden=32, target_samples=8192,
             batch_rays=256, occ_resolution=32, occ_warmup=16, occ_update_every=8, lr=2e-2, video_frames=0,
@@ -82,7 +82,7 @@ def test_run_folder_has_heldout_curve(tmp_path):
     """run_training: history.json holds the held-out curve and training.png is drawn with it."""
     import os
 
-    from warpnerf.run import run_training
+    from warpnerf.runs.run import run_training
 
     os.environ["WARPNERF_CACHE"] = str(tmp_path / "cache")
     cfg = build_config("full", overrides={**TINY, "scene": "chair", "builtin_resolution": 24, "iters": 8,

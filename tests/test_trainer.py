@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from tiny_scene import tiny_scene
-from warpnerf.config import ConfigError, build_config, load_toml
-from warpnerf.tasks import FewShotTask, farthest_view_order, make_task
-from warpnerf.evaluate import evaluate, refine_poses
-from warpnerf.trainer import Trainer
+from warpnerf.train.config import ConfigError, build_config, load_toml
+from warpnerf.train.tasks import FewShotTask, farthest_view_order, make_task
+from warpnerf.train.evaluate import evaluate, refine_poses
+from warpnerf.train.trainer import Trainer
 
 TINY = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128, hidden=32, target_samples=16384,
             batch_rays=512, occ_resolution=32, occ_warmup=32, occ_update_every=8, log_every=20, lr=2e-2,
@@ -76,7 +76,7 @@ def test_mtrf_field_trains_with_a_sparse_occupancy_grid():
 
 def test_refine_poses_recovers_perturbed_test_poses(trained_full):
     """Test-time refinement (pose task evaluation) pulls perturbed poses back and leaves exact ones."""
-    from warpnerf.cameras import rotation_about_axis, rotation_error_deg
+    from warpnerf.geometry.cameras import rotation_about_axis, rotation_error_deg
 
     trainer = trained_full
     views = trainer.views.subset([0, 1, 2])  # training views: where the field is most accurate
@@ -102,7 +102,7 @@ def test_refine_poses_renders_every_view_within_the_sample_budget(trained_full):
     budget; the rays past it must still be rendered, not left as background. Before the fix, one
     render call per step left the last of 25 lego test views unrefined and drove the one before
     it from 31.1 dB (unrefined) to 26.6 dB."""
-    from warpnerf.cameras import rotation_about_axis
+    from warpnerf.geometry.cameras import rotation_about_axis
 
     trainer = trained_full
     views = trainer.views.subset([0, 1, 2])
@@ -125,7 +125,7 @@ def test_refine_poses_renders_every_view_within_the_sample_budget(trained_full):
 
 
 def test_flush_tiny_moments_zeroes_only_what_cannot_move_a_parameter():
-    from warpnerf.trainer import MOMENT_FLUSH_BELOW, flush_tiny_moments
+    from warpnerf.train.trainer import MOMENT_FLUSH_BELOW, flush_tiny_moments
 
     p = torch.nn.Parameter(torch.zeros(6))
     opt = torch.optim.Adam([p], lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
@@ -147,7 +147,7 @@ def test_untouched_rows_keep_no_denormal_moments():
     """A field trained past MOMENT_FLUSH_EVERY steps holds no denormal Adam moment: rows no sample
     reaches (most of a hash table's fine levels on a small scene) would otherwise decay into
     float32's denormal range, where x86 arithmetic is ~10x slower."""
-    from warpnerf.trainer import MOMENT_FLUSH_EVERY
+    from warpnerf.train.trainer import MOMENT_FLUSH_EVERY
 
     t = make_trainer(iters=MOMENT_FLUSH_EVERY)
     for s in range(MOMENT_FLUSH_EVERY - 1):
@@ -193,7 +193,7 @@ def test_pose_gradient_path_has_no_cpu_index_backward():
     so a resumed run could not match an uninterrupted one (issue 11). Rays and samples are gathered
     with index_select instead."""
     assert "IndexBackward0" in backward_node_names(torch.zeros(2, requires_grad=True)[torch.tensor([0, 0])])
-    from warpnerf.renderer import pixel_rays
+    from warpnerf.model.renderer import pixel_rays
 
     t = make_trainer("pose", iters=10)
     batch = t.sample_pixels(t.n_rays)
@@ -288,7 +288,7 @@ def test_occupancy_threshold_is_configurable():
 
 
 def test_non_finite_loss_is_a_clear_error():
-    from warpnerf.trainer import TrainingError
+    from warpnerf.train.trainer import TrainingError
 
     t = make_trainer(iters=10)
     with torch.no_grad():
@@ -304,7 +304,7 @@ def test_non_finite_loss_is_a_clear_error():
 def test_learning_guard_stops_a_run_that_does_not_learn():
     """A learning rate so small that nothing moves: the run stays at the background-only loss level
     and the guard stops it after the warm-ups with a line naming the step and what to try."""
-    from warpnerf.trainer import TrainingError
+    from warpnerf.train.trainer import TrainingError
 
     t = make_trainer(iters=400, lr=1e-12, lr_warmup=0, log_every=20)
     with pytest.raises(TrainingError, match=r"not learning at step 240: .* try a lower --lr"):
@@ -404,7 +404,7 @@ def test_early_ray_termination_changes_pixels_by_less_than_its_threshold(trained
 
 
 def test_peak_memory_over_budget_is_a_clear_error():
-    from warpnerf.trainer import TrainingError
+    from warpnerf.train.trainer import TrainingError
 
     t = make_trainer(iters=10, memory_budget_mb=1)
     with pytest.raises(TrainingError, match=r"peak memory \d+ MB exceeds memory_budget_mb = 1 at step 0"):
@@ -472,12 +472,12 @@ def test_forward_facing_builtin_scene_trains_in_ndc(tmp_path):
 
 
 def test_distortion_loss_concentrates_the_weights():
-    """``distortion_weight`` adds mip-NeRF 360's distortion loss (warpnerf.losses) to the photometric
+    """``distortion_weight`` adds mip-NeRF 360's distortion loss (warpnerf.model.losses) to the photometric
     loss: trained with it, rays carry their weight in shorter stretches (lower distortion on
     held-out rays) than in the same run without it; the logged loss stays the MSE. On opaque photos
     (alpha 1: a transparent field cannot lower the loss by fading out)."""
-    import warpnerf.metrics as M
-    from warpnerf.renderer import pixel_rays
+    import warpnerf.train.metrics as M
+    from warpnerf.model.renderer import pixel_rays
 
     scene = tiny_scene()
     scene.train.alpha = torch.ones(scene.train.images.shape[:3])
@@ -539,7 +539,7 @@ def test_opaque_photos_train_an_opaque_field():
         img = trainer.renderer.render_image(test.c2w[0], test.height, test.width, test.focal, test.cx, test.cy)
         opacity[random_background] = img["opacity"]
     # pixels whose ray crosses the scene box (slab test): the others get no sample either way
-    from warpnerf.renderer import pixel_rays
+    from warpnerf.model.renderer import pixel_rays
 
     v, u = torch.meshgrid(torch.arange(test.height) + 0.5, torch.arange(test.width) + 0.5, indexing="ij")
     o, d = pixel_rays(test.c2w[0][None].expand(u.numel(), 3, 4), u.reshape(-1), v.reshape(-1), test.focal, test.cx,
@@ -601,9 +601,9 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
     """Paper: sigma 0.15 on synthetic scenes, 0.01 on real captures; --pose-noise overrides both."""
     from types import SimpleNamespace
 
-    from warpnerf.config import TrainConfig
-    from warpnerf.data.rayspace import RaySpace
-    from warpnerf.tasks import PoseTask
+    from warpnerf.train.config import TrainConfig
+    from warpnerf.geometry.rayspace import RaySpace
+    from warpnerf.train.tasks import PoseTask
 
     scene = SimpleNamespace(kind=kind, ray_space=RaySpace())
     assert PoseTask(TrainConfig(task="pose")).noise_sigmas(scene) == (sigma, sigma)
@@ -623,9 +623,9 @@ def test_pose_on_a_forward_facing_scene_has_a_one_line_caveat():
     BARF's alignment and get no caveat, nor do other tasks."""
     from types import SimpleNamespace
 
-    from warpnerf.config import TrainConfig
-    from warpnerf.data.rayspace import RaySpace
-    from warpnerf.tasks import FullTask, PoseTask
+    from warpnerf.train.config import TrainConfig
+    from warpnerf.geometry.rayspace import RaySpace
+    from warpnerf.train.tasks import FullTask, PoseTask
 
     ndc = SimpleNamespace(ray_space=RaySpace.ndc(100.0, 64, 48))
     world = SimpleNamespace(ray_space=RaySpace())
@@ -646,10 +646,10 @@ def test_forward_facing_pose_errors_align_the_orientations():
     camera-frame translation offset."""
     from types import SimpleNamespace
 
-    from warpnerf.cameras import evaluate_poses, look_at, rotation_error_deg, so3_exp
-    from warpnerf.config import TrainConfig
-    from warpnerf.data.rayspace import RaySpace
-    from warpnerf.tasks import PoseTask
+    from warpnerf.geometry.cameras import evaluate_poses, look_at, rotation_error_deg, so3_exp
+    from warpnerf.train.config import TrainConfig
+    from warpnerf.geometry.rayspace import RaySpace
+    from warpnerf.train.tasks import PoseTask
 
     g = torch.Generator().manual_seed(0)
     centres = torch.rand(6, 3, generator=g, dtype=torch.float64) * 0.2 + torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64)
@@ -688,7 +688,7 @@ def test_forward_facing_pose_errors_align_the_orientations():
 def test_a_checkpoint_from_another_scene_box_is_refused_in_one_line():
     """A run trained with another box (another scene, or an LLFF run from before the NDC box held
     every training ray) would be rendered through the wrong occupancy cells: loading says so."""
-    from warpnerf.checkpoint import CheckpointError
+    from warpnerf.train.checkpoint import CheckpointError
 
     trainer = make_trainer(iters=1)
     state = trainer.state_dict()
@@ -704,7 +704,7 @@ def test_training_compaction_follows_the_kept_fraction_and_resumes():
     """The trainer compacts (Renderer._active_prefixes) while the last compacted step kept less than
     COMPACT_BELOW of its samples, probes every COMPACT_PROBE_EVERY steps, and checkpoints the fraction
     (a resumed run makes the same choices)."""
-    from warpnerf.trainer import COMPACT_BELOW, COMPACT_PROBE_EVERY
+    from warpnerf.train.trainer import COMPACT_BELOW, COMPACT_PROBE_EVERY
 
     t = make_trainer(iters=80)
     calls = []

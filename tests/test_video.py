@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from chair_run import RESOLUTION, VIDEO_FRAMES  # the session fixture chair_run is in conftest.py
-from warpnerf.cameras import look_at
+from warpnerf.geometry.cameras import look_at
 from warpnerf.cli import main
-from warpnerf.video import (CameraPath, look_target, make_path, orbit_path, read_camera_path_json, read_video,
+from warpnerf.runs.video import (CameraPath, look_target, make_path, orbit_path, read_camera_path_json, read_video,
                            scene_up, write_camera_path_json, write_video, have_ffmpeg)
 
 
@@ -102,7 +102,7 @@ def test_render_bad_path_is_one_line_error(chair_run, capsys):
 
 
 def test_spiral_path_of_a_run(chair_run):
-    from warpnerf.video import load_run
+    from warpnerf.runs.video import load_run
 
     trainer = load_run(str(chair_run), "cpu")
     cams = make_path(trainer, "spiral", 8, scale=0.5)

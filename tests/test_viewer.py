@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf.viewer import RunViewer, c2w_from_viser, matrix_to_quat, quat_to_matrix, viser_from_c2w
+from warpnerf.outputs.viewer import RunViewer, c2w_from_viser, matrix_to_quat, quat_to_matrix, viser_from_c2w
 
 
 def test_quaternion_and_camera_conventions_round_trip():
@@ -131,7 +131,7 @@ def test_headless_chromium_shows_the_scene(chair_run, tmp_path):
         pytest.skip("chromium not installed (apt-get install -y chromium)")
     import imageio.v2 as imageio
 
-    from warpnerf.viewer import serve
+    from warpnerf.outputs.viewer import serve
 
     viewer = RunViewer(str(chair_run), "cpu", preview_height=120)
     port = _free_port()

@@ -4,10 +4,10 @@ import math
 
 import torch
 
-from warpnerf.cameras import look_at
-from warpnerf.data.rayspace import RaySpace
+from warpnerf.geometry.cameras import look_at
+from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
-from warpnerf.renderer import pixel_rays
+from warpnerf.model.renderer import pixel_rays
 
 SPHERES = [  # centre, radius, color
     ((0.0, 0.0, 0.0), 0.45, (0.9, 0.2, 0.2)),

@@ -6,7 +6,7 @@
 
 "Shared offset" = the mean over views of BARF's w2c translation error (x100) and of the rotation error
 log(R_gt^T R), both in each camera's own frame, after the Sim(3) alignment of the camera centres
-(:func:`warpnerf.cameras.evaluate_poses`). An analysis tool, not part of the package.
+(:func:`warpnerf.geometry.cameras.evaluate_poses`). An analysis tool, not part of the package.
 """
 
 import argparse
@@ -15,10 +15,10 @@ import os
 import torch
 
 from warpnerf import device as devmod
-from warpnerf.cameras import camera_frame_residuals, evaluate_poses, perturb_poses
-from warpnerf.checkpoint import load_checkpoint
-from warpnerf.run import load_scene_for, make_task, read_run_config
-from warpnerf.trainer import Trainer
+from warpnerf.geometry.cameras import camera_frame_residuals, evaluate_poses, perturb_poses
+from warpnerf.train.checkpoint import load_checkpoint
+from warpnerf.runs.run import load_scene_for, make_task, read_run_config
+from warpnerf.train.trainer import Trainer
 
 def fmt(v: torch.Tensor) -> str:
     return "(" + ", ".join(f"{x:+.4f}" for x in v.tolist()) + ")"
@@ -59,7 +59,7 @@ def cmd_noise(args) -> None:
 
 
 def cmd_refine(args) -> None:
-    from warpnerf.evaluate import refine_poses
+    from warpnerf.train.evaluate import refine_poses
 
     trainer = load_trainer(args.run)
     trainer.cfg.pose_refine_steps, trainer.cfg.pose_lr, trainer.cfg.pose_lr_final = args.steps, 1e-3, 1e-5

@@ -25,7 +25,7 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_frames, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
-from warpnerf.data.rayspace import RaySpace
+from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0

@@ -40,7 +40,7 @@ import uuid
 import numpy as np
 import torch
 
-from warpnerf import cameras
+from warpnerf.geometry import cameras
 from warpnerf.data.builtin_meshes import SCENES, SceneMesh
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.scene import Scene
@@ -63,7 +63,7 @@ KEY_STRENGTH, FILL_STRENGTH, AMBIENT = 0.62, 0.18, 0.30
 
 
 # Unbounded built-in scenes: rendered by their own function, loaded with a contracted ray space
-# (warpnerf.data.rayspace): the world is scaled by GARDEN_SCALE so the chair's box (+-1.5) lies in
+# (warpnerf.geometry.rayspace): the world is scaled by GARDEN_SCALE so the chair's box (+-1.5) lies in
 # the unit ball; the cameras (radius 4.03) sit at 2.0, the ground's edge (8) at 4 and the
 # environment sphere (15) at 7.5, i.e. contracted radii 1.5, 1.75 and 1.87.
 UNBOUNDED = {
@@ -126,7 +126,7 @@ def look_at(eyes: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.
     """(N, 3, 4) float32 OpenGL camera-to-world matrices of cameras at ``eyes`` (N, 3) looking at ``target``.
 
     No roll: the camera x axis is horizontal (as in Blender's NeRF-synthetic renders). The numpy face
-    of :func:`warpnerf.cameras.look_at` (computed in float64), so both treat a camera looking along
+    of :func:`warpnerf.geometry.cameras.look_at` (computed in float64), so both treat a camera looking along
     ``up`` the same way.
     """
     c2w = cameras.look_at(torch.from_numpy(np.asarray(eyes, np.float64)), target, up)
@@ -537,7 +537,7 @@ def load_builtin(
     scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
     scene.source = "builtin"
     if name in UNBOUNDED:
-        from warpnerf.data.rayspace import RaySpace
+        from warpnerf.geometry.rayspace import RaySpace
 
         scene.kind = "unbounded"
         scene.ray_space = RaySpace.contracted(GARDEN_NEAR, scale=GARDEN_SCALE)

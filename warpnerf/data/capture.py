@@ -17,7 +17,7 @@ from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_p
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.images import area_downscale, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
-from warpnerf.data.rayspace import RaySpace
+from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
 
 
@@ -103,7 +103,7 @@ def build_scene(
         aabb_scale: fallback box half-side when there are no points (see normalize).
         normalize: apply :func:`normalization_from_cameras` (False keeps the capture frame).
         unbounded: a 360° capture with a distant background: a contracted ray space
-            (:mod:`warpnerf.data.rayspace`) around the normalised cameras, which lie in
+            (:mod:`warpnerf.geometry.rayspace`) around the normalised cameras, which lie in
             [-1, 1]^3, instead of a box; near from the points/cameras as for a box, far 1000.
 
     The applied map is returned in ``scene.normalization`` (a :class:`Normalization`).

@@ -13,10 +13,10 @@ the full-resolution image. Processing follows the original NeRF code:
    and up axes), so the cameras look down -z around the origin;
 5. hold out every ``holdout``-th image (i % holdout == 0) as the test split.
 
-The scene's ray space is LLFF's NDC (:meth:`RaySpace.ndc <warpnerf.data.rayspace.RaySpace.ndc>`,
-formula in :mod:`warpnerf.data.rayspace`, docs/design.md §6): world rays of the recentred scene are
+The scene's ray space is LLFF's NDC (:meth:`RaySpace.ndc <warpnerf.geometry.rayspace.RaySpace.ndc>`,
+formula in :mod:`warpnerf.geometry.rayspace`, docs/design.md §6): world rays of the recentred scene are
 projected by the views' pinhole camera at the origin; the box holds every training ray from the
-near plane to infinity (:func:`~warpnerf.data.rayspace.ndc_extent`: x', y' slightly beyond
+near plane to infinity (:func:`~warpnerf.geometry.rayspace.ndc_extent`: x', y' slightly beyond
 [-1, 1], z' in [-1, 1]), and uniform steps are uniform in inverse depth, which suits
 forward-facing scenes with a far background.
 """
@@ -30,7 +30,7 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
-from warpnerf.data.rayspace import RaySpace, ndc_extent
+from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 from warpnerf.data.scene import Scene, Views
 
 LLFF_BD_FACTOR = 0.75

@@ -7,7 +7,7 @@ Conventions (shared by all loaders and the renderer):
 * images are (N, H, W, 3) float32 in [0, 1], already composited on the background;
 * ``focal``, ``cx``, ``cy`` are in pixels of the loaded (possibly downscaled) images;
 * a pixel (u, v) (column, row) has its centre at (u + 0.5, v + 0.5);
-* ``ray_space`` (:mod:`warpnerf.data.rayspace`) says how world rays become the rays the marcher
+* ``ray_space`` (:mod:`warpnerf.geometry.rayspace`) says how world rays become the rays the marcher
   sees, and holds the scene box and marching bounds in that space (docs/design.md §6).
 """
 
@@ -18,7 +18,7 @@ from typing import Optional
 
 import torch
 
-from warpnerf.data.rayspace import RaySpace
+from warpnerf.geometry.rayspace import RaySpace
 
 
 @dataclass

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
+from warpnerf.ops.launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -140,7 +140,7 @@ def cpgrid_encode(
         lines: (spec.n_rows, 3, R) line values of all levels, same dtype and device as ``x``.
             Differentiable.
         spec: the grid geometry (:class:`CPGridSpec`).
-        level_weights: L G²fR weights w_l in [0, 1] (host :class:`~warpnerf.freq_mask.LevelWeights`,
+        level_weights: L G²fR weights w_l in [0, 1] (host :class:`~warpnerf.model.g2fr.LevelWeights`,
             floats, an (L,) tensor, or ``None`` for all ones; see :func:`hashgrid_encode`).
             Not differentiable. Levels with w_l = 0 are skipped (output 0, no gradient).
         known_output: optional, this call's output already computed without autograd (the
@@ -179,7 +179,7 @@ class _Launcher(GridLauncher):
 
     @staticmethod
     def make_kernels(spec: CPGridSpec, wp_dtype):
-        from ..kernels.cpgrid import make_cpgrid_kernels
+        from warpnerf.kernels.cpgrid import make_cpgrid_kernels
 
         return make_cpgrid_kernels(spec.rank, wp_dtype)
 

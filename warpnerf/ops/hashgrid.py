@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import torch
 
-from ..device import init_warp
-from .hashgrid_spec import HashGridSpec
-from .launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
+from warpnerf.device import init_warp
+from warpnerf.ops.hashgrid_spec import HashGridSpec
+from warpnerf.ops.launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
@@ -36,7 +36,7 @@ def hashgrid_encode(
             Differentiable (gradient 0 where clamped).
         table: (spec.n_rows, F) features of all levels, same dtype and device as ``x``. Differentiable.
         spec: the grid geometry (:class:`HashGridSpec`).
-        level_weights: L G²fR weights w_m in [0, 1]: a host :class:`~warpnerf.freq_mask.LevelWeights`
+        level_weights: L G²fR weights w_m in [0, 1]: a host :class:`~warpnerf.model.g2fr.LevelWeights`
             or floats (read without touching the device), an (L,) tensor (read once: a sync on
             CUDA), or ``None`` for all ones. Not differentiable.
         known_output: optional, this call's output already computed without autograd (the
@@ -66,7 +66,7 @@ def _check_inputs(x, table, spec, level_weights) -> tuple[float, ...]:
 def kernel_variant_specs():
     """One small spec per kernel variant the op can generate (every D and F it accepts), for
     :func:`warpnerf.ops.registry.kernel_modules`; the dtype is the other variant axis."""
-    from .hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES
+    from warpnerf.ops.hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES
 
     for dim in SUPPORTED_DIMS:
         for features in SUPPORTED_FEATURES:
@@ -80,7 +80,7 @@ class _Launcher(GridLauncher):
 
     @staticmethod
     def make_kernels(spec: HashGridSpec, wp_dtype):
-        from ..kernels.hashgrid import make_hashgrid_kernels
+        from warpnerf.kernels.hashgrid import make_hashgrid_kernels
 
         return make_hashgrid_kernels(spec.dim, spec.n_features, wp_dtype)
 

@@ -20,7 +20,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..device import init_warp, num_threads, run_chunks, split_range
+from warpnerf.device import init_warp, num_threads, run_chunks, split_range
 
 # fixed number of CPU ray chunks: rays differ a lot in cost (box misses, empty space), and
 # four chunks balance two threads better than two; the launch overhead (~15 us each) is negligible
@@ -108,7 +108,7 @@ def check_grid_inputs(op: str, x, params, params_name: str, spec, spec_type: typ
 
 def level_weight_values(op: str, level_weights, n_levels: int) -> tuple[float, ...]:
     """G²fR level weights for a grid op as host floats: all ones for None; a
-    :class:`~warpnerf.freq_mask.LevelWeights` or a sequence of floats is read as is (no device
+    :class:`~warpnerf.model.g2fr.LevelWeights` or a sequence of floats is read as is (no device
     access); an (L,) tensor is read once (a device sync on CUDA: pass host weights in hot loops).
     ValueError unless there are L values in [0, 1] (NaN rejected)."""
     if level_weights is None:

@@ -12,8 +12,8 @@ from typing import NamedTuple, Optional, Sequence
 
 import torch
 
-from ..device import init_warp
-from .launch import aabb_floats, as_warp, launch_over_rays
+from warpnerf.device import init_warp
+from warpnerf.ops.launch import aabb_floats, as_warp, launch_over_rays
 
 __all__ = ["march_rays", "march_rays_within_budget", "march_rays_window", "MarchState", "PackedSamples",
            "prefix_rows", "rays_within_budget"]
@@ -78,7 +78,7 @@ def march_rays(
         rays_d: (R, 3) float32 ray directions (unit length recommended, see above).
         aabb: 6 floats (xmin, ymin, zmin, xmax, ymax, zmax), the box the grid covers.
         occ_bitfield: (res^3,) uint8, 1 = occupied, cell (ix, iy, iz) at (ix * res + iy) * res + iz
-            (:class:`warpnerf.occupancy.OccupancyGrid` layout); ``None`` = the whole box is occupied.
+            (:class:`warpnerf.model.occupancy.OccupancyGrid` layout); ``None`` = the whole box is occupied.
         occ_resolution: res, cells per axis.
         near, far: clip range of t (``far`` may be ``inf``: the box bounds the march).
         step_size: sample spacing along t, > 0.
@@ -92,7 +92,7 @@ def march_rays(
             and the occupancy cell is the one of the *contracted* midpoint, ``aabb`` being the
             grid's box in contracted space (``(-2, -2, -2, 2, 2, 2)``).
         occupied_box: optional 6 floats bounding every occupied cell
-            (:meth:`~warpnerf.occupancy.OccupancyGrid.occupied_box`): rays then skip the candidates
+            (:meth:`~warpnerf.model.occupancy.OccupancyGrid.occupied_box`): rays then skip the candidates
             far from it. The samples are the same with or without it (ignored when ``contract``).
     Returns:
         :class:`PackedSamples` on the device of ``rays_o``. Not differentiable: the outputs carry
@@ -148,7 +148,7 @@ def march_rays_within_budget(
         return PackedSamples(counts.clone(), empty_f, empty_f.clone(), counts.clone(), counts), 0
 
     wp = init_warp()
-    from ..kernels import raymarch as kernels
+    from warpnerf.kernels import raymarch as kernels
 
     kernel = kernels.march_rays_contracted if contract else kernels.march_rays
     grid_scale = [res / (h - l) for l, h in zip(lo, hi)]
@@ -203,7 +203,7 @@ def march_rays_within_budget(
 
 def _block_args(occupied_blocks, res: int, device) -> list:
     """Kernel arguments (blocks, block) of the empty-block skip: ``occupied_blocks`` (b, blocks)
-    as :meth:`~warpnerf.occupancy.OccupancyGrid.occupied_blocks` returns it, or one occupied
+    as :meth:`~warpnerf.model.occupancy.OccupancyGrid.occupied_blocks` returns it, or one occupied
     block covering the grid (nothing is skipped)."""
     wp = init_warp()
     if occupied_blocks is None:
@@ -273,7 +273,7 @@ def march_rays_window(
     that stops a ray once it is opaque never marches the rest of it. Returns ``(t_starts,
     t_ends, counts)``: (R, window) float32 intervals of which the first ``counts[r]`` of row r
     are samples (the rest is garbage), and (R,) int32 counts. Arguments as in :func:`march_rays`;
-    ``occupied_box`` (6 floats, e.g. :meth:`~warpnerf.occupancy.OccupancyGrid.occupied_box`), a box
+    ``occupied_box`` (6 floats, e.g. :meth:`~warpnerf.model.occupancy.OccupancyGrid.occupied_box`), a box
     holding every occupied cell: the uniform march then skips the candidates before and after
     it (same samples, fewer steps). Ignored by the contracted march.
     """
@@ -299,7 +299,7 @@ def march_rays_window(
         res, occupied_blocks = 1, None
         occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
     wp = init_warp()
-    from ..kernels import raymarch as kernels
+    from warpnerf.kernels import raymarch as kernels
 
     inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract),
               wp.vec3(*lo), wp.vec3(*hi), wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)]),

@@ -19,7 +19,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-from ..device import init_warp
+from warpnerf.device import init_warp
 
 __all__ = ["KernelModule", "STATIC_KERNEL_MODULES", "GRID_DTYPE_NAMES", "kernel_modules"]
 
@@ -56,7 +56,7 @@ class KernelModule:
 def kernel_modules() -> list[KernelModule]:
     """All Warp modules of the package, grid variants first; see the module docstring."""
     wp = init_warp()
-    from . import cpgrid, hashgrid
+    from warpnerf.ops import cpgrid, hashgrid
 
     out: list[KernelModule] = []
     for op, grid in (("hashgrid", hashgrid), ("cpgrid", cpgrid)):

@@ -10,8 +10,8 @@ from typing import Sequence, Union
 
 import torch
 
-from ..composite import TRANSMITTANCE_EPS
-from ..raymarch import prefix_rows
+from warpnerf.ops.composite import TRANSMITTANCE_EPS
+from warpnerf.ops.raymarch import prefix_rows
 
 __all__ = ["composite_rays", "active_sample_counts"]
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from ..cpgrid import CPGridSpec
+from warpnerf.ops.cpgrid import CPGridSpec
 
 
 def _interpolate_lines(lines: torch.Tensor, xc: torch.Tensor, spec: CPGridSpec, level: int, axis: int) -> torch.Tensor:

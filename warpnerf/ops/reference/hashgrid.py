@@ -10,7 +10,7 @@ import itertools
 
 import torch
 
-from ..hashgrid_spec import HASH_PRIMES, HashGridSpec
+from warpnerf.ops.hashgrid_spec import HASH_PRIMES, HashGridSpec
 
 
 def _level_rows(corner: torch.Tensor, spec: HashGridSpec, m: int) -> torch.Tensor:

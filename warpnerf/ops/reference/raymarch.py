@@ -12,8 +12,8 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..launch import aabb_floats
-from ..raymarch import MAX_STEPS_PER_RAY, MarchState, PackedSamples, _padded_box, rays_within_budget
+from warpnerf.ops.launch import aabb_floats
+from warpnerf.ops.raymarch import MAX_STEPS_PER_RAY, MarchState, PackedSamples, _padded_box, rays_within_budget
 
 __all__ = ["march_rays", "march_rays_within_budget", "march_rays_window"]
 

@@ -1,0 +1,270 @@
+"""The ``warpnerf`` command line: train, eval, scenes, table, sweep, bench, render, export, view, doctor, process.
+
+Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
+User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+# torch's OpenMP wait settings, before anything imports torch (the config registry below does): a
+# short spin instead of libgomp's default busy wait or passive wake-ups (warpnerf/openmp.py)
+from warpnerf.openmp import set_wait_defaults
+
+set_wait_defaults()
+
+from warpnerf.cli.errors import UserError
+from warpnerf.cli.flags import add_config_flags
+from warpnerf.train.config import MODELS
+
+
+def _add_device(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", help="auto (cuda if Warp sees one, else cpu), cpu, cuda, cuda:N")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads for Warp launches and torch ops (default: min(2, cores))")
+
+
+def _setup_device(args) -> str:
+    from warpnerf import device
+
+    try:
+        if args.threads is not None:
+            device.limit_cpu_threads(args.threads)
+        return device.resolve_device(args.device)
+    except ValueError as e:
+        raise UserError(str(e)) from e
+
+
+def cmd_bench(args) -> int:
+    from warpnerf.studies import bench
+
+    _setup_device(args)
+    if args.what == "encoding":
+        res = bench.bench_encoding(n=args.n, levels=args.levels, log2_table_size=args.log2_table_size,
+                                   repeats=args.repeats, device=args.device, model=args.model,
+                                   roofline=not args.no_roofline)
+        print(json.dumps(res) if args.json else bench.format_encoding(res))
+        return 0
+    if args.what == "render":
+        if not args.run:
+            raise UserError("warpnerf bench render needs --run RUN (a finished run folder)")
+        res = bench.bench_render(args.run, views=args.views, device=args.device, every_sample=args.every_sample)
+        print(json.dumps(res) if args.json else bench.format_render(res))
+        return 0
+    if args.what == "step":
+        res = bench.bench_step(repeats=args.repeats, device=args.device, data_root=args.data_root,
+                               roofline=not args.no_roofline)
+        print(json.dumps(res) if args.json else bench.format_step(res))
+        return 0
+    raise UserError(f"unknown benchmark '{args.what}'")
+
+
+def cmd_train(args) -> int:
+    from warpnerf.cli.flags import config_overrides
+    from warpnerf.train.config import build_config, load_toml
+    from warpnerf.runs.run import read_run_config, run_training
+
+    overrides = config_overrides(args)  # None = not given: the preset or --config file keeps its value
+    task = args.task
+    if args.resume:
+        # the run's own config, with whatever the command line changes on top (checked against it)
+        saved = read_run_config(args.resume)
+        task, overrides["out"] = saved.task, args.resume
+        file_values = load_toml(args.config) if args.config else {}
+        base = {k: v for k, v in saved.to_dict().items() if k != "task"}
+        overrides = {**base, **file_values, **{k: v for k, v in overrides.items() if v is not None}}
+        cfg = build_config(task, None, overrides)
+    else:
+        cfg = build_config(task, args.config, overrides)
+    metrics = run_training(cfg, progress=not args.quiet, overwrite=args.overwrite, resume=bool(args.resume),
+                           force=args.force)
+    if metrics.get("already_finished"):
+        return 0
+    print(_summary(metrics))
+    print(f"run folder: {cfg.run_dir()}")
+    return 0
+
+
+def _summary(m: dict) -> str:
+    parts = [f"PSNR {m['psnr']:.2f} dB", f"SSIM {m['ssim']:.3f}", f"{m['iters']} iters",
+             f"train {m['train_seconds']:.0f} s", f"render {m['render_seconds_per_view']:.2f} s/view"]
+    return "; ".join(parts + _pose_summary(m))
+
+
+def _pose_summary(m: dict) -> list[str]:
+    """The pose task's figures in a run's (or an evaluation's) metrics; [] for other tasks."""
+    parts = []
+    if "rot_err_deg" in m:
+        aligned = " (orientations aligned)" if m.get("pose_alignment") == "orientations" else ""
+        parts += [f"rot err {m['rot_err_deg']:.3f} deg{aligned}", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
+        from warpnerf.geometry.cameras import describe_unconverged
+
+        stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so
+        if stuck:
+            parts.append(stuck)
+        found = m.get("reregistered") or []
+        if found:
+            steps = sorted({r["step"] for r in found})
+            parts.append("re-registered view(s) " + "; ".join(
+                f"{', '.join(str(r['view']) for r in found if r['step'] == s)} at step {s}" for s in steps))
+    return parts
+
+
+def cmd_eval(args) -> int:
+    from warpnerf.runs.run import evaluate_run
+
+    _setup_device(args)
+    res = evaluate_run(args.run, progress=not args.quiet, device=args.device)
+    print("; ".join([f"PSNR {res['psnr']:.2f} dB", f"SSIM {res['ssim']:.3f}", *_pose_summary(res)])
+          + f"; written to {args.run}/eval/metrics.json")
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    from warpnerf.data.resolve import describe_scenes
+
+    print(describe_scenes(args.data_root))
+    return 0
+
+
+def _seed_list(text: str) -> list[int]:
+    """``--seed 0`` or ``--seed 0,1,2`` -> distinct ints in the given order."""
+    try:
+        seeds = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a seed or comma-separated seeds, got '{text}'") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds, got '{text}'")
+    return seeds
+
+
+def cmd_table(args) -> int:
+    from warpnerf.studies.sweep import report_failures
+    from warpnerf.studies.table import run_table
+
+    _setup_device(args)
+    res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
+                    data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
+                    config_file=args.config, threads=args.threads, progress=not args.quiet)
+    print(res["table"])
+    return report_failures(res["failed"])
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage mistakes as one line (the full usage of 'train' runs to 30 lines); --help shows the rest."""
+
+    def error(self, message: str):
+        self.exit(2, f"warpnerf: error: {message} (see '{self.prog} --help')\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="warpnerf", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it",
+                       epilog="Config flags not given keep the value of --config FILE, else of the task preset "
+                              "(configs/<task>.toml), else the default shown.")
+    t.add_argument("--config", default=None, help="TOML file overriding the task preset")
+    add_config_flags(t)  # one flag per TrainConfig field (warpnerf/cli/flags.py)
+    t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
+    t.add_argument("--quiet", action="store_true", help="no progress bars")
+    t.add_argument("--resume", metavar="RUN", default=None,
+                   help="continue the unfinished run folder RUN from its last checkpoint")
+    t.add_argument("--force", action="store_true", help="with --resume: accept a changed configuration")
+    t.add_argument("--overwrite", action="store_true", help="clear an existing run folder at --out first")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval", help="re-evaluate a finished run folder")
+    e.add_argument("--run", required=True, help="run folder written by 'warpnerf train'")
+    e.add_argument("--quiet", action="store_true")
+    _add_device(e)
+    e.set_defaults(func=cmd_eval)
+
+    sc = sub.add_parser("scenes", help="list built-in scenes and dataset scenes found under --data-root")
+    sc.add_argument("--data-root", default=None)
+    sc.set_defaults(func=cmd_scenes)
+
+    tb = sub.add_parser("table", help="reproduce the paper's tables: runs with and without G2fR")
+    tb.add_argument("--scenes", default="lego")
+    tb.add_argument("--tasks", default="fewshot,pose")
+    tb.add_argument("--models", default="ngp", help="comma-separated encodings: ngp, mtrf")
+    tb.add_argument("--data-root", default=None)
+    tb.add_argument("--iters", type=int, default=None, help="override the presets' iterations")
+    tb.add_argument("--out", default="runs/table")
+    tb.add_argument("--seed", type=_seed_list, default=[0],
+                    help="a seed, or comma-separated seeds (e.g. 0,1,2): each arm runs once per seed; the table "
+                         "shows means and the per-seed PSNR gap w/ - w/o")
+    tb.add_argument("--config", default=None, help="TOML file overriding the task presets (both arms)")
+    tb.add_argument("--reuse", action="store_true",
+                    help="(always on now: a run folder holding a finished run of the same configuration is read)")
+    tb.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_device(tb)
+    tb.set_defaults(func=cmd_table)
+    from warpnerf.studies import sweep  # 'warpnerf sweep SPEC.toml' (local or Ray backend)
+
+    sweep.add_parser(sub)
+
+    b = sub.add_parser("bench", help="benchmarks that print measured numbers")
+    b.add_argument("what", choices=["encoding", "step", "render"], help="what to benchmark")
+    b.add_argument("--n", type=int, default=262144, help="points per call")
+    b.add_argument("--levels", type=int, default=16)
+    b.add_argument("--log2-table-size", type=int, default=19)
+    b.add_argument("--model", default="ngp", choices=list(MODELS), help="encoding: hash grid or Mtrf CP lines")
+    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.add_argument("--no-roofline", action="store_true",
+                   help="skip measuring the machine's gather and GEMM rates next to the benchmark")
+    b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
+    b.add_argument("--run", default=None, help="render: the finished run folder whose test views are rendered")
+    b.add_argument("--views", type=int, default=5, help="render: test views timed (spread over the test set)")
+    b.add_argument("--every-sample", action="store_true",
+                   help="render: early ray termination off (every marched sample evaluated), the reference")
+    _add_device(b)
+    b.set_defaults(func=cmd_bench)
+    from warpnerf.cli.outputs import add_output_commands  # render, export, view (commands on a finished run)
+
+    add_output_commands(sub)
+    from warpnerf.cli import doctor  # machine report; imports torch/warp only when it runs
+
+    doctor.add_parser(sub)
+
+    from warpnerf.data.process import add_parser as add_process_parser  # photos -> COLMAP -> dataset (issue 12)
+
+    add_process_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from warpnerf.train.config import ConfigError
+
+    user_errors: tuple = (UserError, ConfigError)
+    interrupted: tuple = ()
+    try:
+        from warpnerf.train.checkpoint import CheckpointError
+        from warpnerf.data.errors import DatasetError
+        from warpnerf.runs.run import TrainingInterrupted
+        from warpnerf.train.trainer import TrainingError
+
+        user_errors += (DatasetError, TrainingError, CheckpointError)
+        interrupted = (TrainingInterrupted,)
+    except ImportError:  # pragma: no cover - partial installs
+        pass
+    try:
+        return int(args.func(args) or 0)
+    except interrupted as e:
+        print(f"warpnerf: {e}", file=sys.stderr)
+        return 130
+    except user_errors as e:
+        if args.debug:
+            raise
+        print(f"warpnerf: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("warpnerf: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,222 @@
+"""``warpnerf doctor``: one screen on what this machine offers warpnerf, and the usual mistakes.
+
+Prints Warp and torch versions and builds (CPU or CUDA torch), the CUDA devices Warp and torch
+see with their architectures, whether the package's Warp kernels are compiled for them, and the
+CPU thread count. ``--compile`` compiles the kernels: on every CUDA device (into Warp's kernel
+cache, what training loads), or, without a GPU, ahead of time to PTX for ``--arch`` (default
+sm_70/80/90, mapped onto what the installed NVRTC can target) into the AOT cache.
+
+Nothing here runs at ``import warpnerf``: all probing happens when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+
+from warpnerf import openmp
+
+
+def add_parser(sub) -> None:
+    """Register ``doctor`` on the ``warpnerf`` sub-parser set ``sub``."""
+    p = sub.add_parser("doctor", help="what this machine offers (Warp, torch, CUDA devices, kernel cache) and common mistakes")
+    p.add_argument("--compile", action="store_true",
+                   help="compile every kernel: on each CUDA device, or ahead of time to PTX when there is no GPU")
+    p.add_argument("--arch", default=None,
+                   help="comma-separated SM architectures for the ahead-of-time check, e.g. 80,90 (default 70,80,90)")
+    p.set_defaults(func=run)
+
+
+def _parse_archs(text: str | None) -> tuple[int, ...]:
+    from warpnerf.ops.registry import WANTED_ARCHS
+
+    if not text:
+        return WANTED_ARCHS
+    try:
+        archs = tuple(int(a.strip().lower().removeprefix("sm_")) for a in text.split(",") if a.strip())
+    except ValueError:
+        archs = ()
+    if not archs or any(a < 50 for a in archs):
+        from warpnerf.cli.errors import UserError
+
+        raise UserError(f"--arch must be comma-separated SM numbers such as 80,90, got '{text}'")
+    return archs
+
+
+def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None) -> dict:
+    """Everything ``doctor`` reports, as a dict (also used by the tests)."""
+    import torch
+
+    from warpnerf.device import init_warp, num_threads
+    from warpnerf.ops import registry
+
+    wp = init_warp()
+    from warp._src.context import runtime  # toolkit/driver versions have no public accessor in 1.19
+
+    info: dict = {
+        "warpnerf": _package_version(),
+        "python": platform.python_version(),
+        "platform": f"{platform.system()} {platform.machine()}",
+        "warp": wp.__version__,
+        "warp_toolkit": runtime.toolkit_version,  # CUDA toolkit Warp was built with, (major, minor) or None
+        "warp_driver": runtime.driver_version,  # installed NVIDIA driver's CUDA version, or None
+        "nvrtc_archs": registry.nvrtc_archs(),
+        "torch": torch.__version__,
+        "torch_cuda_build": torch.version.cuda,  # None for a CPU wheel
+        "torch_cuda_available": bool(torch.cuda.is_available()),
+        "torch_cuda_devices": torch.cuda.device_count() if torch.cuda.is_available() else 0,
+        "cpu_cores": os.cpu_count() or 1,
+        "threads": num_threads(),
+        "threads_env": os.environ.get("WARPNERF_THREADS"),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # the command line leaves it unset unless given
+        "openmp_wait": openmp.describe(),  # the command line sets a short spin unless given
+        "kernel_cache": wp.config.kernel_cache_dir,
+        "aot_cache": registry.aot_cache_dir(),
+    }
+    devices = []
+    for d in wp.get_cuda_devices() if wp.is_cuda_available() else []:
+        devices.append({"name": d.alias, "gpu": d.name, "arch": d.arch,
+                        "memory_gb": round(d.total_memory / 2**30, 1), "compile_arch": d.get_cuda_compile_arch()})
+    info["cuda_devices"] = devices
+
+    modules = registry.kernel_modules()
+    info["kernel_modules"] = len(modules)
+    info["kernels"] = sum(len(km.kernel_names) for km in modules)
+    failures: list[str] = []
+    if compile_kernels and devices:
+        for d in devices:
+            for km in modules:
+                try:
+                    wp.load_module(km.module, device=d["name"])
+                except Exception as e:  # noqa: BLE001 - reported with the kernel's name
+                    failures.append(f"{km.label} on {d['name']}: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
+    info["device_compiled"] = {d["name"]: sum(_in_kernel_cache(wp, km, d["compile_arch"]) for km in modules)
+                               for d in devices}
+    info["cpu_compiled"] = sum(_in_kernel_cache(wp, km, None) for km in modules)
+
+    wanted = tuple(archs or registry.WANTED_ARCHS)
+    aot_archs = registry.target_archs(wanted)
+    info["aot_archs"] = aot_archs
+    info["aot_unsupported"] = [a for a in wanted if a not in info["nvrtc_archs"]]
+    if compile_kernels and not devices and aot_archs:
+        failures += registry.compile_aot(modules, aot_archs)
+    info["aot_compiled"] = {a: sum(registry.aot_compiled(km, a) for km in modules) for a in aot_archs}
+    info["compile_failures"] = failures
+    info["problems"] = problems(info)
+    return info
+
+
+def _in_kernel_cache(wp, km, arch: int | None) -> bool:
+    """Whether Warp's kernel cache holds this module's binary for the CPU (arch None) or an SM arch.
+
+    The cache folder is named by a hash that includes the block size: CPU launches use 1, CUDA
+    the module default, so both identifiers are checked."""
+    for block_dim in (None, 1):
+        ident = km.module.get_module_identifier(block_dim)
+        folder = os.path.join(wp.config.kernel_cache_dir, ident)
+        if not os.path.isdir(folder):
+            continue
+        for f in os.listdir(folder):
+            if arch is None and f.startswith(ident) and f.endswith(".o"):
+                return True
+            if arch is not None and f.startswith(f"{ident}.sm{arch}") and f.endswith((".ptx", ".cubin")):
+                return True
+    return False
+
+
+def problems(info: dict) -> list[str]:
+    """One line per known misconfiguration, most serious first."""
+    out = []
+    torch_cuda, warp_gpus = info["torch_cuda_build"], len(info["cuda_devices"])
+    if torch_cuda and not info["torch_cuda_available"]:
+        out.append(f"CUDA torch without a usable driver: torch was built for CUDA {torch_cuda} but sees no GPU; "
+                   "everything runs on the CPU (install the NVIDIA driver, or the ~200 MB CPU wheel of torch)")
+    if not torch_cuda and warp_gpus:
+        out.append(f"CPU torch on a GPU machine: Warp sees {warp_gpus} CUDA device(s) but torch is a CPU build, so "
+                   "'--device auto' fails; install a CUDA build of torch, or pass --device cpu")
+    if info["warp_toolkit"] and info["warp_driver"] and info["warp_driver"] < (info["warp_toolkit"][0], 0):
+        out.append(f"driver too old for Warp: the driver supports CUDA {_v(info['warp_driver'])}, Warp was built with "
+                   f"CUDA {_v(info['warp_toolkit'])}; update the NVIDIA driver or install a Warp build for CUDA "
+                   f"{info['warp_driver'][0]}")
+    if torch_cuda and info["warp_driver"]:
+        major = int(str(torch_cuda).split(".")[0])
+        if info["warp_driver"][0] < major:
+            out.append(f"driver too old for torch: the driver supports CUDA {_v(info['warp_driver'])}, torch was "
+                       f"built for CUDA {torch_cuda}; install a torch wheel for CUDA {info['warp_driver'][0]}")
+    if torch_cuda and info["warp_toolkit"] and warp_gpus and int(str(torch_cuda).split(".")[0]) != info["warp_toolkit"][0]:
+        out.append(f"mismatched CUDA versions: torch is built for CUDA {torch_cuda}, Warp for CUDA "
+                   f"{_v(info['warp_toolkit'])}; both work while the driver supports the newer one, but prefer "
+                   "matching majors")
+    policy = str(info.get("omp_wait_policy") or "").strip().lower()
+    if policy == "active" and not warp_gpus:
+        out.append("OMP_WAIT_POLICY=ACTIVE: torch's idle OpenMP workers spin on the cores Warp's launch threads "
+                   "need (training steps ~20 % slower on 2 cores); unset it and the command line sets a short spin")
+    elif policy == "passive" and not warp_gpus:
+        out.append("OMP_WAIT_POLICY=PASSIVE: every small torch op pays a thread wake-up (training steps ~20 % "
+                   "slower on 2 cores); unset it and the command line sets a short spin (GOMP_SPINCOUNT)")
+    if info["torch_cuda_available"] and not warp_gpus:
+        out.append("torch sees a GPU but Warp does not: the kernels would run on the CPU; check the Warp install")
+    for name, n in info["device_compiled"].items():
+        if n < info["kernel_modules"]:
+            out.append(f"{name}: {info['kernel_modules'] - n} of {info['kernel_modules']} kernel modules not compiled yet "
+                       "(the first training step compiles them; 'warpnerf doctor --compile' does it now)")
+    out += [f"does not compile: {f}" for f in info["compile_failures"]]
+    return out
+
+
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("warpnerf")
+    except PackageNotFoundError:
+        return "source checkout"
+
+
+def _v(pair) -> str:
+    return f"{pair[0]}.{pair[1]}" if pair else "none"
+
+
+def format_report(info: dict) -> str:
+    torch_build = f"CUDA {info['torch_cuda_build']}" if info["torch_cuda_build"] else "CPU"
+    gpu = "yes" if info["torch_cuda_available"] else "no"
+    lines = [
+        f"warpnerf  {info['warpnerf']}, python {info['python']} on {info['platform']}",
+        f"torch     {info['torch']} ({torch_build} build; sees a GPU: {gpu}, devices: {info['torch_cuda_devices']})",
+        f"warp      {info['warp']} (built with CUDA {_v(info['warp_toolkit'])}; driver: "
+        f"{('CUDA ' + _v(info['warp_driver'])) if info['warp_driver'] else 'none'}; "
+        f"NVRTC targets: {_arch_list(info['nvrtc_archs'])})",
+    ]
+    if info["cuda_devices"]:
+        for d in info["cuda_devices"]:
+            lines.append(f"device    {d['name']}: {d['gpu']}, sm_{d['arch']}, {d['memory_gb']} GB; kernels compiled "
+                         f"{info['device_compiled'][d['name']]}/{info['kernel_modules']} modules")
+    else:
+        lines.append("device    no CUDA device: warpnerf runs on the CPU")
+    threads_src = "WARPNERF_THREADS" if info["threads_env"] else "min(2, cores)"
+    lines.append(f"cpu       {info['cpu_cores']} cores, {info['threads']} thread(s) for Warp launches ({threads_src}); "
+                 f"kernels compiled {info['cpu_compiled']}/{info['kernel_modules']} modules; "
+                 f"OpenMP wait {info.get('openmp_wait', 'default')}")
+    lines.append(f"kernels   {info['kernels']} kernels in {info['kernel_modules']} modules; cache {info['kernel_cache']}")
+    if info["aot_archs"]:
+        done = ", ".join(f"sm_{a} {n}/{info['kernel_modules']}" for a, n in info["aot_compiled"].items())
+        lines.append(f"PTX       ahead-of-time (no GPU needed): {done}  [{info['aot_cache']}]")
+        if info["aot_unsupported"]:
+            lines.append(f"          (this NVRTC cannot target {', '.join(f'sm_{a}' for a in info['aot_unsupported'])}: "
+                         "the next supported architecture stands in)")
+    lines += [f"problem   {p}" for p in info["problems"]] or ["problems  none found"]
+    return "\n".join(lines)
+
+
+def _arch_list(archs) -> str:
+    if not archs:
+        return "none"
+    return f"sm_{archs[0]}..sm_{archs[-1]}" if len(archs) > 3 else ", ".join(f"sm_{a}" for a in archs)
+
+
+def run(args: argparse.Namespace) -> int:
+    info = collect(compile_kernels=args.compile, archs=_parse_archs(args.arch))
+    print(format_report(info))
+    # exit 1 only when asked to compile and something does not compile; a report is not an error
+    return 1 if info["compile_failures"] else 0

@@ -1,0 +1,120 @@
+"""Command-line parsers of the commands that work on a finished run: ``render``, ``export``, ``view``.
+
+Kept apart from the modules that do the work so ``warpnerf --help`` does not import torch;
+each command imports its module when it runs. Errors the user can fix raise ``UserError``
+(one line, exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", required=True, help="run folder written by 'warpnerf train'")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:N")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def add_output_commands(sub) -> None:
+    """Register ``render``, ``export`` and ``view`` on the ``warpnerf`` sub-parser set ``sub``."""
+    p = sub.add_parser("render", help="render a camera path of a trained run to MP4 (GIF without ffmpeg)")
+    _run_args(p)
+    p.add_argument("--path", default="orbit", help="orbit, spiral, test, or a nerfstudio camera_path.json")
+    p.add_argument("--frames", type=int, default=60, help="frames (orbit/spiral; test: at most the test views)")
+    p.add_argument("--out", default=None, help="video file (default RUN/render_<path>.mp4)")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--scale", type=float, default=1.0, help="resolution relative to the training views")
+    p.add_argument("--depth", action="store_true", help="depth map beside the RGB")
+    p.add_argument("--save-path", default=None, help="also write the cameras as a nerfstudio camera_path.json")
+    p.set_defaults(func=cmd_render)
+
+    e = sub.add_parser("export", help="export a trained run's geometry: marching-cubes mesh or point cloud (PLY)")
+    _run_args(e)
+    e.add_argument("--what", default="mesh", choices=["mesh", "points"])
+    e.add_argument("--out", default=None, help="PLY file (default RUN/<what>.ply)")
+    e.add_argument("--resolution", type=int, default=256, help="mesh: density samples per axis of the scene box")
+    e.add_argument("--threshold", type=float, default=None,
+                   help="mesh: iso-level, density per scene unit (default: warpnerf.outputs.export.DEFAULT_THRESHOLD)")
+    e.add_argument("--scale", type=float, default=0.5, help="points: render resolution relative to the training views")
+    e.add_argument("--min-opacity", type=float, default=0.95, help="points: keep pixels at least this opaque")
+    e.add_argument("--max-points", type=int, default=1_000_000)
+    e.add_argument("--max-views", type=int, default=0, help="points: render at most this many training views (0: all)")
+    e.set_defaults(func=cmd_export)
+
+    v = sub.add_parser("view", help="live viewer of a run in the browser (viser); follows a training run's checkpoints")
+    _run_args(v)
+    v.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0: reachable from other machines)")
+    v.add_argument("--port", type=int, default=8080)
+    v.add_argument("--preview-height", type=int, default=160, help="rendered image height, pixels")
+    v.add_argument("--wait", type=float, default=0.0,
+                   help="seconds to wait for checkpoint.pt of a training run that has not saved one yet")
+    v.set_defaults(func=cmd_view)
+
+
+def cmd_render(args) -> int:
+    from warpnerf.cli.errors import UserError
+    from warpnerf.runs.video import PathError, load_run, make_path, render_frames, write_camera_path_json, write_video
+
+    if args.fps <= 0 or args.scale <= 0:
+        raise UserError("--fps and --scale must be > 0")
+    if args.path.endswith(".json") and not os.path.isfile(args.path):
+        raise UserError(f"camera path file not found: {args.path}")
+    trainer = load_run(args.run, args.device, progress=not args.quiet)
+    name = os.path.splitext(os.path.basename(args.path))[0]
+    out = args.out or os.path.join(args.run, f"render_{name}.mp4")
+    try:
+        cams = make_path(trainer, args.path, args.frames, args.scale)
+    except PathError as e:
+        raise UserError(str(e)) from e
+    if args.save_path:
+        write_camera_path_json(args.save_path, cams, args.fps)
+    written = write_video(out, render_frames(trainer, cams, args.depth, not args.quiet), args.fps)
+    print(f"{len(cams)} frames ({cams.width}x{cams.height}{' + depth' if args.depth else ''}) written to {written}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from warpnerf.cli.errors import UserError
+    from warpnerf.outputs.export import DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply
+    from warpnerf.runs.video import load_run
+
+    if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
+        raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")
+    out = args.out or os.path.join(args.run, f"{args.what}.ply")
+    trainer = load_run(args.run, args.device, progress=not args.quiet)
+    try:
+        if args.what == "mesh":
+            threshold = DEFAULT_THRESHOLD if args.threshold is None else args.threshold
+            verts, faces, colors = extract_mesh(trainer, args.resolution, threshold)
+            write_ply(out, verts, colors, faces)
+            print(f"mesh: {len(verts)} vertices, {len(faces)} faces (iso-level {threshold}) written to {out}")
+        else:
+            points, colors = extract_points(trainer, args.scale, args.min_opacity, args.max_points,
+                                            max_views=args.max_views)
+            if len(points) == 0:
+                raise ExportError(f"no pixel is more opaque than --min-opacity {args.min_opacity}")
+            write_ply(out, points, colors)
+            print(f"points: {len(points)} coloured points written to {out}")
+    except ExportError as e:
+        raise UserError(str(e)) from e
+    return 0
+
+
+def cmd_view(args) -> int:
+    from warpnerf.cli.errors import UserError
+
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise UserError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
+    from warpnerf.outputs.viewer import RunViewer, serve, wait_for_checkpoint
+
+    if args.wait > 0 and not wait_for_checkpoint(args.run, args.wait):
+        raise UserError(f"no checkpoint.pt appeared in {args.run} within {args.wait:.0f} s")
+    viewer = RunViewer(args.run, args.device, args.preview_height)
+    print(f"warpnerf view: http://{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:{args.port} "
+          f"(step {viewer.step}; Ctrl-C to stop)", flush=True)
+    serve(viewer, args.host, args.port)
+    return 0

@@ -1,0 +1,131 @@
+"""The G²fR level mask (paper eq. 15): which grid levels may speak at iteration t.
+
+tau = M * min(t / (beta * T), 1) sweeps from 0 to the number of levels M over the first
+``beta`` fraction of training. Level 1 is always on. Level i (1-based, i >= 2) fades in with
+a cosine ramp, following BARF's coarse-to-fine schedule; the binary variant switches it on
+at the end of its ramp.
+
+Index convention (a deliberate deviation from the text of eq. 15): printed literally, eq. 15
+ramps level i over i <= tau < i + 1, but tau never exceeds M, so the finest level M would keep
+weight 0 for the whole run. We use BARF's 0-based form, where level i ramps over
+i - 1 <= tau < i: w_i = (1 - cos((tau - i + 1) pi)) / 2. Every level is then fully on once
+t >= beta T, which is the behaviour the paper describes.
+
+The weights multiply each level's features inside the encoding kernel; a level whose weight
+is 0 is skipped entirely (no table reads, no gradient).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from warpnerf.train.config import G2FR_BETA
+
+# the level ramps this module implements; the config's choices and checks read this registry
+MASK_MODES = ("cosine", "binary")
+
+
+def g2fr_tau(step: int, total_steps: int, n_levels: int, beta: float) -> float:
+    """Optimisation progress tau in [0, n_levels] (paper eq. 15)."""
+    if total_steps <= 0:
+        raise ValueError(f"total_steps must be positive, got {total_steps}")
+    if not 0.0 < beta <= 1.0:
+        raise ValueError(f"g2fr beta must be in (0, 1], got {beta}")
+    return n_levels * min(max(step, 0) / (beta * total_steps), 1.0)
+
+
+def g2fr_level_weight(level: int, tau: float, mode: str = "cosine") -> float:
+    """Weight w_i(tau) of the 1-based level ``level``."""
+    if mode not in MASK_MODES:
+        raise ValueError(f"unknown g2fr mask mode '{mode}': expected one of {MASK_MODES}")
+    if level == 1:
+        return 1.0
+    ramp = tau - (level - 1)  # progress through this level's ramp (see the module docstring)
+    if ramp < 0.0:
+        return 0.0
+    if ramp >= 1.0:
+        return 1.0
+    if mode == "binary":
+        return 0.0
+    return 0.5 * (1.0 - math.cos(ramp * math.pi))
+
+
+def g2fr_weights(step: int, total_steps: int, n_levels: int, beta: float, mode: str = "cosine") -> torch.Tensor:
+    """Per-level weights (n_levels,) float32 at iteration ``step`` of ``total_steps``."""
+    tau = g2fr_tau(step, total_steps, n_levels, beta)
+    return torch.tensor([g2fr_level_weight(i + 1, tau, mode) for i in range(n_levels)], dtype=torch.float32)
+
+
+@dataclass(frozen=True)
+class LevelWeights:
+    """The G²fR weights w_m of L grid levels as host floats, in [0, 1].
+
+    What the trainer hands the encoders: an immutable host value, so the grid launchers decide
+    which levels to launch without reading a device tensor (no CUDA sync per launch). ``to()``
+    returns the value itself (it lives on no device), so code written for the tensor form works.
+
+    Example:
+        >>> w = LevelWeights((1.0, 0.5, 0.0))
+        >>> w.active, len(w), w.as_tensor().tolist()
+        ((0, 1), 3, [1.0, 0.5, 0.0])
+    """
+
+    values: tuple[float, ...]
+
+    def __post_init__(self):
+        vals = tuple(float(v) for v in self.values)
+        if not all(0.0 <= v <= 1.0 for v in vals):  # also rejects NaN
+            raise ValueError(f"level weights must lie in [0, 1], got {vals}")
+        object.__setattr__(self, "values", vals)
+
+    @classmethod
+    def ones(cls, n_levels: int) -> "LevelWeights":
+        return cls((1.0,) * n_levels)
+
+    @property
+    def active(self) -> tuple[int, ...]:
+        """0-based ids of the levels with w_m > 0 (the only ones a kernel reads)."""
+        return tuple(m for m, w in enumerate(self.values) if w > 0.0)
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def __iter__(self):
+        return iter(self.values)
+
+    def __getitem__(self, m):
+        return self.values[m]
+
+    def to(self, *args, **kwargs) -> "LevelWeights":
+        return self
+
+    def as_tensor(self, device=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(L,) tensor of the weights (a host-to-device copy when ``device`` is a GPU)."""
+        return torch.tensor(self.values, dtype=dtype, device=device)
+
+
+class G2fRSchedule:
+    """Callable schedule: ``schedule(step) -> (n_levels,) weights``; all ones when disabled.
+    :meth:`level_weights` gives the same weights as a host :class:`LevelWeights`."""
+
+    def __init__(self, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine", enabled: bool = True):
+        # validate once, up front, so a bad config fails before training starts
+        g2fr_tau(0, total_steps, n_levels, beta)
+        g2fr_level_weight(2, 0.0, mode)
+        self.n_levels, self.total_steps, self.beta, self.mode, self.enabled = n_levels, total_steps, beta, mode, enabled
+
+    def __call__(self, step: int) -> torch.Tensor:
+        return self.level_weights(step).as_tensor()
+
+    def level_weights(self, step: int) -> LevelWeights:
+        """The weights of ``step`` as a host value (what the trainer passes to the field)."""
+        if not self.enabled:
+            return LevelWeights.ones(self.n_levels)
+        tau = g2fr_tau(step, self.total_steps, self.n_levels, self.beta)
+        return LevelWeights(tuple(g2fr_level_weight(i + 1, tau, self.mode) for i in range(self.n_levels)))
+
+    def active_levels(self, step: int) -> int:
+        return len(self.level_weights(step).active)

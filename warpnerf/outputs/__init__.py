@@ -1,0 +1,1 @@
+"""What is made from a finished run on demand: meshes and point clouds, the live viewer."""

@@ -1,0 +1,200 @@
+"""``warpnerf view``: a live viewer of a run in the browser (viser, ``pip install 'warpnerf[viewer]'``).
+
+The viser server serves a three.js page; every time a browser's camera moves, the server
+renders the field from that camera at preview resolution (``preview_height`` pixels tall, the
+browser's aspect) and sends it as the page's background image. Viser cameras follow OpenCV
+(x right, y down, looking down +z); warpnerf's c2w follow OpenGL (x right, y up, looking down
+-z), hence the flip of the y and z axes in :func:`c2w_from_viser`.
+
+Attaching to a training run: ``warpnerf train --checkpoint-every 100`` writes ``checkpoint.pt``
+(with its step, so the G²fR level weights match) every 100 steps; the viewer polls the file's
+modification time and reloads it, re-rendering every connected browser.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+import torch
+
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
+
+
+def quat_to_matrix(wxyz) -> np.ndarray:
+    """(3, 3) rotation of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a (3, 3) rotation (Shepperd's method, numerically safe branch)."""
+    m = np.asarray(r, np.float64)
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (m[j, i] + m[i, j]) / s
+        q[1 + k] = (m[k, i] + m[i, k]) / s
+    q = np.asarray(q)
+    return q / np.linalg.norm(q)
+
+
+def c2w_from_viser(position, wxyz) -> torch.Tensor:
+    """(3, 4) OpenGL camera-to-world from a viser camera (position (3,), OpenCV rotation wxyz)."""
+    r = quat_to_matrix(wxyz) @ _GL_FROM_CV
+    return torch.as_tensor(np.concatenate([r, np.asarray(position, np.float64)[:, None]], 1), dtype=torch.float32)
+
+
+def viser_from_c2w(c2w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), wxyz (4,)) of a (3, 4) OpenGL camera-to-world."""
+    m = c2w.detach().cpu().double().numpy()
+    return m[:, 3].copy(), matrix_to_quat(m[:, :3] @ _GL_FROM_CV)
+
+
+class RunViewer:
+    """A run's field, rendered for viewer cameras; reloads the checkpoint when it changes.
+
+    Args:
+        run_dir: run folder (``config.toml`` and ``checkpoint.pt``).
+        preview_height: rendered image height in pixels (width from the browser's aspect).
+    """
+
+    def __init__(self, run_dir: str, device: str = "auto", preview_height: int = 160):
+        from warpnerf.runs.video import load_run
+
+        self.run_dir = run_dir
+        self.ckpt = os.path.join(run_dir, "checkpoint.pt")
+        self.preview_height = int(preview_height)
+        self.trainer = load_run(run_dir, device)
+        self.lock = threading.Lock()  # one render or reload at a time
+        self._mtime = os.path.getmtime(self.ckpt)
+        self.step = self._step_of(torch.load(self.ckpt, map_location="cpu"))
+        self.renders = 0  # images sent to browsers (tests read it)
+
+    def _step_of(self, state: dict) -> int:
+        return int(state.get("step", self.trainer.cfg.iters))
+
+    def reload_if_changed(self) -> bool:
+        """Reload ``checkpoint.pt`` if its modification time changed; True if it did."""
+        try:
+            mtime = os.path.getmtime(self.ckpt)
+        except OSError:
+            return False
+        if mtime == self._mtime:
+            return False
+        try:
+            state = torch.load(self.ckpt, map_location=self.trainer.device)
+        except Exception:  # caught mid-write by a training process: try again at the next poll
+            return False
+        with self.lock:
+            self.trainer.load_state_dict(state)
+            self.step = self._step_of(state)
+            self._mtime = mtime
+        return True
+
+    def look_at(self) -> np.ndarray:
+        """(3,) the point the training cameras look at (forward-facing scenes: 1 unit ahead of the first test camera)."""
+        from warpnerf.runs.video import look_target, training_cameras
+
+        if self.trainer.scene.ray_space.forward_facing:
+            c = self.initial_camera()
+            return (c[:, 3] - c[:, 2]).double().numpy()
+        return look_target(training_cameras(self.trainer)).numpy()
+
+    def initial_camera(self) -> torch.Tensor:
+        """(3, 4) the first test camera (in the field's frame): where the browser starts."""
+        from warpnerf.runs.video import test_cameras
+
+        return test_cameras(self.trainer)[0]
+
+    @torch.no_grad()
+    def render(self, c2w: torch.Tensor, fov_y: float, aspect: float, height: Optional[int] = None) -> np.ndarray:
+        """(H, W, 3) uint8 render from an OpenGL (3, 4) camera with vertical field of view
+        ``fov_y`` (radians) and width/height ``aspect``."""
+        h = int(height or self.preview_height)
+        w = max(int(round(h * aspect)), 1)
+        focal = 0.5 * h / np.tan(0.5 * fov_y)
+        with self.lock:
+            weights = self.trainer.level_weights(self.step)
+            img = self.trainer.renderer.render_image(c2w.to(self.trainer.device), h, w, float(focal), w / 2, h / 2,
+                                                     weights)
+        return (img["rgb"].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+    def render_viser_camera(self, position, wxyz, fov_y: float, aspect: float, height: Optional[int] = None):
+        """:meth:`render` for a viser camera state (position, OpenCV wxyz, vertical fov in radians, aspect)."""
+        return self.render(c2w_from_viser(position, wxyz), fov_y, aspect, height)
+
+
+def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_seconds: float = 2.0,
+          stop: Optional[threading.Event] = None):
+    """Serve ``viewer`` with viser until ``stop`` is set (or forever). Returns the server after stop."""
+    try:
+        import viser
+    except ImportError:
+        raise RuntimeError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
+
+    stop = stop or threading.Event()
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    c2w0 = viewer.initial_camera()
+    up = viewer.trainer.train_c2w[:, :, 1].mean(0).cpu().double().numpy()
+    up = up / np.linalg.norm(up)
+    server.scene.set_up_direction(tuple(float(v) for v in up))
+    # where new browsers start (and "Reset View" returns): the first test camera, looking at the scene
+    server.initial_camera.position = tuple(float(v) for v in c2w0[:, 3])
+    server.initial_camera.look_at = tuple(float(v) for v in viewer.look_at())
+    server.initial_camera.up = tuple(float(v) for v in up)
+    server.initial_camera.fov = float(2 * np.arctan(0.5 * viewer.trainer.views.height / viewer.trainer.views.focal))
+    status = server.gui.add_markdown(f"**{os.path.basename(os.path.abspath(viewer.run_dir))}** step {viewer.step}")
+
+    def update(client) -> None:
+        if stop.is_set():  # shutting down: the connection is closing
+            return
+        cam = client.camera
+        try:
+            img = viewer.render_viser_camera(cam.position, cam.wxyz, cam.fov, cam.aspect)
+        except Exception as e:  # a render error must not kill the server thread
+            if not stop.is_set():
+                print(f"warpnerf view: render failed: {e}", flush=True)
+            return
+        viewer.renders += 1
+        client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+
+    @server.on_client_connect
+    def _(client) -> None:
+        # the browser reports its camera (initial pose, then every move): render for each report
+        @client.camera.on_update
+        def _(_cam) -> None:
+            update(client)
+
+    while not stop.wait(poll_seconds):
+        if viewer.reload_if_changed():
+            status.content = f"**{os.path.basename(os.path.abspath(viewer.run_dir))}** step {viewer.step} (reloaded)"
+            for client in server.get_clients().values():
+                update(client)
+    server.stop()
+    return server
+
+
+def wait_for_checkpoint(run_dir: str, timeout: float) -> bool:
+    """Wait until ``run_dir/checkpoint.pt`` exists (a training run that has not saved yet)."""
+    t_end = time.time() + timeout
+    while not os.path.exists(os.path.join(run_dir, "checkpoint.pt")):
+        if time.time() > t_end:
+            return False
+        time.sleep(1.0)
+    return True

@@ -1,0 +1,1 @@
+"""Run folders: training one into being, reading one back, and its videos."""

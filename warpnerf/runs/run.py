@@ -1,0 +1,359 @@
+"""Drive one run: load the scene, build task and trainer, train, evaluate, write the run folder.
+
+Run folder layout::
+
+    config.toml       resolved configuration (re-usable with --config)
+    metrics.json      psnr, ssim, timings, task metrics, config_hash; written last: marks the run finished
+    history.json      training curves
+    checkpoint.pt     full training state (periodic, atomic; for --resume and ``warpnerf eval``)
+    renders/          test views (prediction | ground truth) and depth
+    turntable.mp4     orbit video (spiral for forward-facing scenes); turntable.gif without imageio-ffmpeg
+    training.png      loss / PSNR curves; pose runs add cameras.png and pose_error.png
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import Optional
+
+import torch
+
+from warpnerf import device as devmod
+from warpnerf.train.checkpoint import atomic_write_text
+from warpnerf.train.config import ConfigError, TrainConfig, build_config, forward_facing_preset, load_toml
+from warpnerf.train.evaluate import evaluate, write_json
+from warpnerf.train.tasks import make_task
+from warpnerf.train.trainer import Trainer, TrainingError
+
+
+def load_scene_for(cfg: TrainConfig, progress: bool = True):
+    from warpnerf.data.resolve import load_scene
+
+    return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
+                      builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
+                      unbounded=cfg.unbounded)
+
+
+RESULT_NEUTRAL_KEYS = ("out", "device", "threads")  # change where/how fast a run goes, not its numbers
+
+
+def config_text(cfg: TrainConfig) -> str:
+    """The resolved configuration as TOML (what ``config.toml`` of a run folder holds).
+
+    Written by a real TOML writer so quotes and backslashes in paths survive the round trip;
+    None values are left out (TOML has no null: an absent key means the default)."""
+    import tomli_w
+
+    return tomli_w.dumps({k: v for k, v in cfg.to_dict().items() if v is not None})
+
+
+def config_hash(cfg: TrainConfig) -> str:
+    """sha256 (hex) of the configuration without the keys that do not change results
+    (:data:`RESULT_NEUTRAL_KEYS`): metrics.json and checkpoints carry it, and resume, eval and
+    ``table --reuse`` compare it."""
+    import hashlib
+
+    import tomli_w
+
+    values = {k: v for k, v in cfg.to_dict().items() if v is not None and k not in RESULT_NEUTRAL_KEYS}
+    return hashlib.sha256(tomli_w.dumps(values).encode("utf-8")).hexdigest()
+
+
+def write_config(path: str, cfg: TrainConfig) -> None:
+    atomic_write_text(path, config_text(cfg))
+
+
+def read_run_config(run_dir: str) -> TrainConfig:
+    """The TrainConfig stored in ``run_dir/config.toml`` (``out`` set to ``run_dir``)."""
+    path = os.path.join(run_dir, "config.toml")
+    if not os.path.isfile(path):
+        raise ConfigError(f"not a warpnerf run folder: {path} is missing")
+    values = load_toml(path)
+    task = values.pop("task", None)
+    if task is None:
+        raise ConfigError(f"{path}: missing key 'task'")
+    values["out"] = run_dir
+    return build_config(task, overrides=values)
+
+
+def read_metrics(run_dir: str) -> Optional[dict]:
+    """metrics.json of a run folder, or None when absent or unreadable (a run that never finished)."""
+    path = os.path.join(run_dir, "metrics.json")
+    try:
+        with open(path) as fh:
+            metrics = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    return metrics if isinstance(metrics, dict) and "config_hash" in metrics else None
+
+
+def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
+    """metrics.json of ``cfg.run_dir()`` if that folder holds a finished run of exactly ``cfg``
+    (same :func:`config_hash`); None otherwise."""
+    metrics = read_metrics(cfg.run_dir())
+    if metrics is None or metrics.get("config_hash") != config_hash(cfg):
+        return None
+    return metrics
+
+
+def _configure_lpips(cfg: TrainConfig) -> None:
+    """Pick the LPIPS weights evaluation uses (``--lpips-weights``; unusable path: one-line error)."""
+    from warpnerf.train import metrics
+    from warpnerf.train.config import ConfigError
+
+    try:
+        metrics.configure_lpips(cfg.lpips_weights)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def folder_state(out_dir: str) -> str:
+    """"absent", "empty", "finished" (metrics.json), "unfinished" (config.toml, no metrics) or "foreign"."""
+    if not os.path.exists(out_dir):
+        return "absent"
+    if not os.path.isdir(out_dir):
+        return "foreign"
+    names = [n for n in os.listdir(out_dir) if not n.startswith(".tmp-")]
+    if not names:
+        return "empty"
+    if "config.toml" not in names:
+        return "foreign"
+    return "finished" if read_metrics(out_dir) is not None else "unfinished"
+
+
+def _check_writable(out_dir: str) -> None:
+    probe = os.path.abspath(out_dir)
+    while not os.path.exists(probe):
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if not os.path.isdir(probe):
+        raise ConfigError(f"run folder {out_dir}: {probe} exists and is not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ConfigError(f"run folder {out_dir}: {probe} is not writable")
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT/SIGTERM: a checkpoint was saved at a step boundary (the CLI exits 130)."""
+
+
+def _config_diff(a: TrainConfig, b: TrainConfig) -> list[str]:
+    da, db = a.to_dict(), b.to_dict()
+    return [k for k in da if k not in RESULT_NEUTRAL_KEYS and da[k] != db[k]]
+
+
+def prepare_run(cfg: TrainConfig, overwrite: bool = False, resume: bool = False, force: bool = False) -> str:
+    """Decide what happens to the run folder *before* anything loads or is written.
+
+    Returns "fresh", "resume" or "finished" (a resumed run that has nothing left to do). Raises
+    ConfigError when the folder holds another run, an unfinished run without ``resume``, a
+    finished run without ``overwrite``, or a changed config on resume without ``force``."""
+    out_dir = cfg.run_dir()
+    state = folder_state(out_dir)
+    if state == "foreign":
+        raise ConfigError(f"run folder {out_dir} exists and is not a warpnerf run folder; choose another --out")
+    if resume:
+        if state in ("absent", "empty"):
+            raise ConfigError(f"nothing to resume: {out_dir} holds no run")
+        saved = read_run_config(out_dir)
+        changed = _config_diff(saved, cfg)
+        if changed and not force:
+            raise ConfigError(f"{out_dir}/config.toml: config changed on resume ({', '.join(changed)}); "
+                              "pass --force to continue with the new values")
+        if state == "finished" and not changed:
+            return "finished"
+        _check_writable(out_dir)
+        return "resume"
+    if state == "finished" and not overwrite:
+        raise ConfigError(f"run folder {out_dir} holds a finished run; pass --overwrite to replace it or choose another --out")
+    if state == "unfinished" and not overwrite:
+        raise ConfigError(f"run folder {out_dir} holds an unfinished run; continue it with --resume {out_dir} "
+                          "or replace it with --overwrite")
+    _check_writable(out_dir)
+    return "fresh"
+
+
+def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = False, resume: bool = False,
+                 force: bool = False) -> dict:
+    """Train and evaluate one configuration; returns the metrics written to metrics.json.
+
+    Everything the user can get wrong (config values, device, run folder, data) is checked before
+    the first file is written. With ``cfg.save_every`` (and ``cfg.checkpoint_every``) a checkpoint is
+    saved atomically every that many steps; SIGINT/SIGTERM save one at the next step boundary and
+    raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
+    import shutil
+    import signal
+
+    from warpnerf.train.checkpoint import _fault, load_checkpoint, save_checkpoint
+
+    try:
+        if cfg.threads is not None:
+            devmod.limit_cpu_threads(cfg.threads)
+        device = devmod.resolve_device(cfg.device)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    _configure_lpips(cfg)
+    mode = prepare_run(cfg, overwrite, resume, force)
+    from warpnerf.train.trainer import start_memory_window
+
+    start_memory_window()  # this run's peak memory, not that of earlier runs in this process
+    out_dir = cfg.run_dir()
+    if mode == "finished":
+        print(f"{out_dir} is already finished; nothing to do")
+        return dict(read_metrics(out_dir), already_finished=True)
+    t_start = time.perf_counter()
+    ckpt_path = os.path.join(out_dir, "checkpoint.pt")
+    state = None
+    if mode == "resume" and os.path.exists(ckpt_path):  # a bad checkpoint fails before the scene loads
+        state = load_checkpoint(ckpt_path, map_location="cpu")
+    scene = load_scene_for(cfg, progress)
+    task = make_task(cfg)
+    trainer = Trainer(cfg, scene, task, device)  # checks the view selection against the scene
+    if state is not None:
+        trainer.load_state_dict(state)
+    if overwrite and os.path.isdir(out_dir):
+        shutil.rmtree(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    for name in os.listdir(out_dir):  # temp files of writes a crash cut short
+        if name.startswith(".tmp-"):
+            os.unlink(os.path.join(out_dir, name))
+    if mode == "resume" and os.path.exists(os.path.join(out_dir, "metrics.json")):
+        os.unlink(os.path.join(out_dir, "metrics.json"))  # --force on a finished run: it is unfinished again
+    write_config(os.path.join(out_dir, "config.toml"), cfg)
+    preset = f"configs/{cfg.task}.toml"
+    ff_preset = forward_facing_preset(cfg.task, cfg.scene, cfg.data_root)  # as build_config decided
+    if ff_preset:
+        preset += f" + {os.path.basename(ff_preset)}"
+    print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "
+          f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}"
+          + (f"; resumed at step {trainer.step}" if mode == "resume" else ""))
+    caveat = task.caveat(scene)
+    if caveat:
+        print(caveat)
+
+    stop = []
+
+    def on_signal(signum, frame):  # a Warp launch cannot be interrupted: stop at the next step boundary
+        stop.append(signum)
+
+    def save() -> None:
+        save_checkpoint(ckpt_path, {**trainer.state_dict(), "config_hash": config_hash(cfg)})
+
+    def checkpoint_due(n_done: int) -> bool:
+        # save_every: for --resume; checkpoint_every: for 'warpnerf view' to follow the run
+        every = [n for n in (cfg.save_every, cfg.checkpoint_every) if n > 0]
+        return n_done < cfg.iters and any(n_done % n == 0 for n in every)
+
+    def on_step_end(n_done: int) -> None:
+        _fault(f"step:{n_done}")
+        if stop or checkpoint_due(n_done):
+            save()
+        if stop:
+            raise TrainingInterrupted(f"interrupted at step {n_done}; checkpoint saved to {ckpt_path}; "
+                                      f"continue with: warpnerf train --resume {out_dir}")
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for s in handlers:
+            signal.signal(s, on_signal)
+    except ValueError:  # not the main thread: no signal handling
+        handlers = {}
+    from warpnerf.train.monitor import Monitor
+
+    monitor = Monitor(trainer)
+    trainer.callbacks.append(monitor)
+    try:
+        trainer.fit(progress, on_step_end)
+        for name, p in trainer.field.named_parameters():
+            if not torch.isfinite(p).all():
+                raise TrainingError(f"parameter {name} became non-finite during training; try a lower --lr")
+        save()
+    finally:
+        monitor.close()
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    _fault("after_train")
+    t_eval = time.perf_counter()
+    results = evaluate(trainer, out_dir, progress)
+    eval_seconds = time.perf_counter() - t_eval
+    metrics = {
+        "psnr": results["psnr"],
+        "ssim": results["ssim"],
+        "lpips": results["lpips"],
+        "iters": cfg.iters,
+        "train_seconds": trainer.train_seconds,
+        "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
+        "heldout_history": [list(p) for p in trainer.history["heldout"]],  # [step, held-out PSNR dB] pairs
+        "eval_seconds": eval_seconds,
+        "n_train_views": len(trainer.views),
+        "train_view_ids": trainer.views.ids,
+        "scene": scene.name,
+        "scene_source": scene.source,
+        "task": cfg.task,
+        "model": cfg.model,
+        "g2fr": cfg.g2fr,
+        "g2fr_beta": cfg.g2fr_beta,
+        "g2fr_mask": cfg.g2fr_mask,
+        "device": device,
+        "threads": devmod.num_threads(),
+        "seed": cfg.seed,
+        **{k: v for k, v in results.items() if k not in ("psnr", "ssim", "lpips")},
+        **task.metrics(trainer),
+    }
+    write_json(os.path.join(out_dir, "history.json"), trainer.history)
+    from warpnerf.runs import video
+    from warpnerf.train import plots
+
+    plots.plot_training_curves(os.path.join(out_dir, "training.png"),
+                               {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
+                                "training batch PSNR (dB)": trainer.history["psnr"],
+                                **({"held-out PSNR (dB)": trainer.history["heldout"]} if trainer.history["heldout"] else {}),
+                                "encoding Lipschitz bound L_Psi (eq. 17)": trainer.history["lipschitz"]},
+                               title=f"{scene.name} / {cfg.task}: training curves (test metrics in metrics.json)")
+    task.artifacts(trainer, out_dir)
+    if cfg.video_frames > 0:
+        video.render_run_video(trainer, out_dir, cfg.video_frames, progress)  # turntable.mp4 (.gif without ffmpeg)
+    from warpnerf.train.trainer import peak_rss_mb
+
+    metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
+    metrics["total_seconds"] = time.perf_counter() - t_start
+    metrics["config_hash"] = config_hash(cfg)
+    # written once, last and atomically: its presence marks the folder finished
+    write_json(os.path.join(out_dir, "metrics.json"), metrics)
+    return metrics
+
+
+def evaluate_run(run_dir: str, progress: bool = True, device: Optional[str] = None) -> dict:
+    """Re-evaluate a finished run folder from its config and checkpoint; ``device`` overrides the
+    run's (a CUDA-trained run can be scored on a CPU)."""
+    from warpnerf.train.checkpoint import load_checkpoint
+
+    cfg = read_run_config(run_dir)
+    metrics = read_metrics(run_dir)
+    if metrics is None:
+        raise ConfigError(f"{run_dir} is not a finished run (no complete metrics.json); resume it with "
+                          f"warpnerf train --resume {run_dir}")
+    if metrics["config_hash"] != config_hash(cfg):
+        raise ConfigError(f"{run_dir}/metrics.json belongs to another configuration than {run_dir}/config.toml")
+    if device is not None:
+        cfg.device = device
+    try:
+        dev = devmod.resolve_device(cfg.device)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    _configure_lpips(cfg)
+    state = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location="cpu")
+    if state.get("config_hash") != metrics["config_hash"]:
+        raise ConfigError(f"{run_dir}/checkpoint.pt belongs to another configuration than {run_dir}/metrics.json")
+    scene = load_scene_for(cfg, progress)
+    task = make_task(cfg)
+    trainer = Trainer(cfg, scene, task, dev)
+    trainer.load_state_dict(state)
+    os.makedirs(os.path.join(run_dir, "eval"), exist_ok=True)
+    results = evaluate(trainer, os.path.join(run_dir, "eval"), progress)
+    results.update(task.metrics(trainer))
+    write_json(os.path.join(run_dir, "eval", "metrics.json"), results)
+    return results

@@ -1,0 +1,596 @@
+"""``warpnerf sweep SPEC.toml``: the paper's tables as a restartable grid of runs.
+
+A spec names scenes, models, tasks, arms (G²fR on/off), seeds and config overrides; it expands
+into one run per combination, each its own run folder ``<out>/<scene>_<task>_<model>_<arm>_s<seed>``
+built by ``config.build_config`` and trained by ``run.run_training``. The results are collected
+into ``<out>/table.md`` (Tab. 1/Tab. 3 shaped, the paper's numbers beside ours, see ``table.py``),
+pose-error plots, and ``<out>/sweep.json`` (status, error and attempts of every run).
+
+Backends:
+
+* ``local`` (default): one run after another in this process, or ``workers`` processes (spawned,
+  one fresh process per run so a crash or leak cannot spill into the next run);
+* ``ray``: every run a Ray task with ``num_cpus``/``num_gpus`` from the spec; the workers' output
+  is streamed to the driver by Ray, results come back to the driver. ``pip install 'warpnerf[cluster]'``.
+
+Restartable: a run whose folder already holds a finished run of the identical configuration
+(``run.finished_metrics``) is skipped; a failing run is reported with a one-line error and
+retried up to ``retries`` times; the others carry on.
+
+Spec format (TOML; paths relative to the current directory, like command-line flags)::
+
+    out = "runs/sweep"              # parent of the run folders
+    scenes = ["lego", "mic"]
+    models = ["ngp", "mtrf"]        # default ["ngp"]
+    tasks = ["pose"]                # default ["pose", "fewshot"]
+    arms = ["g2fr", "nog2fr"]       # default both
+    seeds = [0]                     # default [0]
+    data_root = "/data"             # optional (default: $WARPNERF_DATA)
+    config = "base.toml"            # optional TOML file under the overrides (both arms)
+    retries = 1                     # optional
+    [resources]                     # per run; ray: task resources, local: CPU threads of a run
+    num_cpus = 2
+    num_gpus = 0
+    [overrides]                     # TrainConfig keys for every run ...
+    video_frames = 0
+    [overrides.pose]                # ... and per task or per model (task/model tables win)
+    iters = 20000
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from warpnerf.train.config import MODELS, ConfigError, TrainConfig, build_config, tomllib
+
+TASKS = ("full", "fewshot", "pose")
+ARMS = {"g2fr": True, "nog2fr": False}
+# keys a spec's [overrides] may not set: they are what the sweep itself varies or places
+_SWEPT = ("scene", "task", "model", "g2fr", "seed", "out", "data_root", "threads")
+MACHINE_FILE = "sweep_machine.txt"  # in the run folder: the machine() line of the worker that ran it
+_SPEC_KEYS = {"out", "scenes", "models", "tasks", "arms", "seeds", "data_root", "config", "retries", "resources",
+              "overrides", "device"}
+
+
+@dataclass
+class SweepSpec:
+    """What to run. ``overrides`` holds TrainConfig keys for every run; ``task_overrides`` and
+    ``model_overrides`` map a task or model name to keys for those runs only."""
+
+    scenes: list[str]
+    models: list[str] = field(default_factory=lambda: ["ngp"])
+    tasks: list[str] = field(default_factory=lambda: ["pose", "fewshot"])
+    arms: list[str] = field(default_factory=lambda: ["g2fr", "nog2fr"])
+    seeds: list[int] = field(default_factory=lambda: [0])
+    out: str = "runs/sweep"
+    data_root: Optional[str] = None
+    config: Optional[str] = None
+    device: str = "auto"
+    retries: int = 1
+    num_cpus: Optional[float] = None  # None: local runs use the default thread count, Ray tasks 1 CPU
+    num_gpus: float = 0
+    overrides: dict = field(default_factory=dict)
+    task_overrides: dict = field(default_factory=dict)
+    model_overrides: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for name, values, allowed in (("tasks", self.tasks, TASKS), ("models", self.models, MODELS),
+                                      ("arms", self.arms, tuple(ARMS))):
+            if not values:
+                raise ConfigError(f"sweep spec: '{name}' is empty")
+            for v in values:
+                if v not in allowed:
+                    raise ConfigError(f"sweep spec: unknown {name[:-1]} '{v}': expected one of {', '.join(allowed)}")
+        if not self.scenes or not self.seeds:
+            raise ConfigError("sweep spec: 'scenes' and 'seeds' must not be empty")
+        if self.retries < 0:
+            raise ConfigError(f"sweep spec: retries must be >= 0, got {self.retries}")
+        for table in (self.overrides, *self.task_overrides.values(), *self.model_overrides.values()):
+            for key in table:
+                if key in _SWEPT:
+                    raise ConfigError(f"sweep spec: '{key}' is set by the sweep itself, not in [overrides]")
+
+
+def load_spec(path: str) -> SweepSpec:
+    """Read a sweep spec; unknown keys and bad values are one-line ``ConfigError``s.
+
+    ``path`` may also name a spec shipped in ``configs/sweeps/`` (e.g. ``nerf_synthetic_pose``)."""
+    if not os.path.exists(path):
+        shipped = shipped_spec(path)
+        if shipped:
+            path = shipped
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"sweep spec not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: malformed TOML: {e}") from None
+    for key in data:
+        if key not in _SPEC_KEYS:
+            raise ConfigError(f"{path}: unknown sweep key '{key}' (expected {', '.join(sorted(_SPEC_KEYS))})")
+    if "scenes" not in data:
+        raise ConfigError(f"{path}: 'scenes' is required")
+
+    def as_list(key, typ):
+        v = data.get(key)
+        if v is None:
+            return None
+        v = v if isinstance(v, list) else [v]
+        if not all(isinstance(x, typ) and not isinstance(x, bool) for x in v):
+            raise ConfigError(f"{path}: '{key}' must be a list of {typ.__name__}")
+        return v
+
+    kwargs: dict[str, Any] = {}
+    for key, typ in (("scenes", str), ("models", str), ("tasks", str), ("arms", str), ("seeds", int)):
+        v = as_list(key, typ)
+        if v is not None:
+            kwargs[key] = v
+    for key in ("out", "data_root", "config", "device"):
+        if key in data:
+            kwargs[key] = str(data[key])
+    if "retries" in data:
+        kwargs["retries"] = int(data["retries"])
+    res = data.get("resources", {})
+    for key in res:
+        if key not in ("num_cpus", "num_gpus"):
+            raise ConfigError(f"{path}: unknown [resources] key '{key}' (expected num_cpus, num_gpus)")
+    if "num_cpus" in res:
+        kwargs["num_cpus"] = res["num_cpus"]
+    if "num_gpus" in res:
+        kwargs["num_gpus"] = res["num_gpus"]
+    flat, per_task, per_model = {}, {}, {}
+    for key, value in data.get("overrides", {}).items():
+        if isinstance(value, dict):
+            if key in TASKS:
+                per_task[key] = value
+            elif key in MODELS:
+                per_model[key] = value
+            else:
+                raise ConfigError(f"{path}: [overrides.{key}]: '{key}' is neither a task nor a model")
+        else:
+            flat[key] = value
+    try:
+        return SweepSpec(**kwargs, overrides=flat, task_overrides=per_task, model_overrides=per_model)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
+def shipped_spec(name: str) -> Optional[str]:
+    """Path of ``configs/sweeps/<name>.toml`` shipped with the package, or None."""
+    from importlib import resources
+
+    stem = os.path.basename(name)
+    stem = stem[:-5] if stem.endswith(".toml") else stem
+    path = str(resources.files("warpnerf.configs").joinpath("sweeps", f"{stem}.toml"))
+    return path if os.path.exists(path) else None
+
+
+@dataclass
+class Run:
+    """One run of the sweep: its identity, its folder and its resolved configuration."""
+
+    scene: str
+    task: str
+    model: str
+    arm: str  # g2fr | nog2fr
+    seed: int
+    cfg: TrainConfig
+
+    @property
+    def name(self) -> str:
+        return os.path.basename(self.cfg.run_dir())
+
+
+def run_name(scene: str, task: str, model: str, arm: str, seed: int) -> str:
+    return f"{scene}_{task}_{model}_{arm}_s{seed}"
+
+
+def expand(spec: SweepSpec) -> list[Run]:
+    """All runs of ``spec`` (task-major, then model, scene, seed, arm: both arms of a row adjacent)."""
+    runs = []
+    for task in spec.tasks:
+        for model in spec.models:
+            for scene in spec.scenes:
+                for seed in spec.seeds:
+                    for arm in spec.arms:
+                        values = {**spec.overrides, **spec.model_overrides.get(model, {}),
+                                  **spec.task_overrides.get(task, {})}
+                        values.update(scene=scene, model=model, g2fr=ARMS[arm], seed=seed, data_root=spec.data_root,
+                                      device=spec.device,
+                                      out=os.path.join(spec.out, run_name(scene, task, model, arm, seed)))
+                        cfg = build_config(task, spec.config, overrides=values)
+                        runs.append(Run(scene, task, model, arm, seed, cfg))
+    return runs
+
+
+# ----------------------------------------------------------------------------- one run (in a worker)
+
+def _one_line(e: BaseException) -> str:
+    msg = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {msg[0] if msg else ''}".rstrip(": ")
+
+
+def machine() -> str:
+    """This machine in a few words: host, CPU cores, and the GPU torch sees if any."""
+    import platform
+
+    text = f"{platform.node() or 'host'} ({os.cpu_count()} CPU cores"
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            text += f", {torch.cuda.get_device_name(0)}"
+    except Exception:  # pragma: no cover - torch is a core dependency
+        pass
+    return text + ")"
+
+
+def _continue_or_replace(cfg: TrainConfig) -> dict:
+    """Train ``cfg`` in its run folder: an unfinished run of the same configuration (a worker that
+    crashed or was stopped) continues from its last checkpoint; anything else there is replaced."""
+    from warpnerf.runs.run import config_hash, folder_state, read_run_config, run_training
+
+    if folder_state(cfg.run_dir()) == "unfinished":
+        try:
+            same = config_hash(read_run_config(cfg.run_dir())) == config_hash(cfg)
+        except Exception:  # noqa: BLE001 - an unreadable config.toml: start again
+            same = False
+        if same:
+            return run_training(cfg, progress=False, resume=True)
+    return run_training(cfg, progress=False, overwrite=True)
+
+
+def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optional[str] = None,
+                stream: bool = False) -> dict:
+    """Train one configuration; never raises. Returns ``{"status": "done", "metrics": ...}`` or
+    ``{"status": "failed", "error": one line}``, plus ``machine``.
+
+    ``threads``: Warp and torch CPU threads for this run (results do not depend on it, so it is
+    not part of the configuration and a restart with another worker count still skips).
+    ``log_path``: the run's output goes to this file (and to stdout as well with ``stream``).
+    """
+    from warpnerf import device as devmod
+    from warpnerf.runs.run import run_training
+
+    result: dict = {"machine": machine()}
+    log = None
+    old_threads = None
+    try:
+        import torch
+
+        if threads:
+            old_threads = (devmod.num_threads(), torch.get_num_threads())
+            devmod.limit_cpu_threads(int(threads))
+        cfg = TrainConfig(**cfg_values)
+        if log_path:
+            os.makedirs(os.path.dirname(log_path) or ".", exist_ok=True)
+            log = open(log_path, "a")
+        sink = _Tee(log, sys.stdout) if stream and log else (log or sys.stdout)
+        with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+            try:
+                result.update(status="done", metrics=_continue_or_replace(cfg))
+                # where it ran, for the table's note when a restarted sweep skips this run
+                with open(os.path.join(cfg.run_dir(), MACHINE_FILE), "w") as fh:
+                    fh.write(result["machine"] + "\n")
+            except BaseException as e:  # noqa: BLE001 - any failure of a run is reported, not raised
+                if isinstance(e, KeyboardInterrupt):
+                    raise
+                traceback.print_exc()
+                result.update(status="failed", error=_one_line(e))
+    except Exception as e:  # noqa: BLE001 - setup failures (bad values, unwritable log)
+        result.update(status="failed", error=_one_line(e))
+    finally:
+        if log:
+            log.close()
+        if old_threads:
+            import torch
+
+            devmod.set_num_threads(old_threads[0])
+            torch.set_num_threads(old_threads[1])
+    return result
+
+
+class _Tee:
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, s):
+        for st in self.streams:
+            st.write(s)
+        return len(s)
+
+    def flush(self):
+        for st in self.streams:
+            st.flush()
+
+
+def _worker_entry(cfg_values: dict, threads: Optional[int], log_path: str) -> dict:
+    """Entry point of a local worker process (spawned: no forked Warp/torch state)."""
+    return execute_run(cfg_values, threads, log_path)
+
+
+# ----------------------------------------------------------------------------- backends
+
+@dataclass
+class RunResult:
+    run: Run
+    status: str = "pending"  # skipped | done | failed
+    metrics: Optional[dict] = None
+    error: str = ""
+    attempts: int = 0
+    seconds: float = 0.0
+    machine: str = ""
+
+
+class _Progress:
+    """Live display of the sweep: a tqdm bar over runs with done / running / failed and ETA."""
+
+    def __init__(self, total: int, skipped: int, enabled: bool):
+        from tqdm.auto import tqdm
+
+        self.counts = {"done": skipped, "running": 0, "failed": 0}
+        self.bar = tqdm(total=total, initial=skipped, desc="sweep", unit="run", disable=not enabled,
+                        dynamic_ncols=True)
+        self.enabled = enabled
+        self._refresh()
+
+    def _refresh(self):
+        self.bar.set_postfix_str(f"done {self.counts['done']}, running {self.counts['running']}, "
+                                 f"failed {self.counts['failed']}")
+
+    def started(self, n: int = 1):
+        self.counts["running"] += n
+        self._refresh()
+
+    def finished(self, res: RunResult, final: bool):
+        """``final``: no retry follows (a failure counts as failed, success as done)."""
+        self.counts["running"] -= 1
+        if res.status == "done":
+            self.counts["done"] += 1
+            self.bar.update(1)
+            m = res.metrics or {}
+            self.write(f"done    {res.run.name}: PSNR {m.get('psnr', float('nan')):.2f} dB, {res.seconds:.0f} s")
+        else:
+            if final:
+                self.counts["failed"] += 1
+                self.bar.update(1)
+            retry = "" if final else " (retrying)"
+            self.write(f"FAILED  {res.run.name} (attempt {res.attempts}): {res.error}{retry}")
+        self._refresh()
+
+    def write(self, line: str):
+        if self.enabled:
+            self.bar.write(line)
+        else:
+            print(line, flush=True)
+
+    def close(self):
+        self.bar.close()
+
+
+def _log_path(run: Run) -> str:
+    """``<out>/logs/<run>.log``: beside the run folder, which holds only what training writes
+    (a file of ours inside it would make run.prepare_run take it for a foreign folder)."""
+    run_dir = os.path.normpath(run.cfg.run_dir())
+    return os.path.join(os.path.dirname(run_dir), "logs", os.path.basename(run_dir) + ".log")
+
+
+def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers: int, progress: _Progress) -> None:
+    """Sequential in this process (workers <= 1) or a pool of spawned single-use worker processes."""
+    threads = spec.num_cpus
+    if workers > 1 and threads is None:
+        threads = max(1, (os.cpu_count() or 1) // workers)  # share the cores instead of oversubscribing
+    threads = int(threads) if threads else None
+    if workers <= 1:
+        for res in pending:
+            while True:
+                res.attempts += 1
+                progress.started()
+                t0 = time.perf_counter()
+                out = execute_run(res.run.cfg.to_dict(), threads, _log_path(res.run))
+                _settle(res, out, time.perf_counter() - t0)
+                final = res.status == "done" or res.attempts > retries
+                progress.finished(res, final)
+                if final:
+                    break
+        return
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = mp.get_context("spawn")
+    queue = list(pending)
+    running: dict = {}
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1)
+    try:
+        while queue or running:
+            while queue and len(running) < workers:
+                res = queue.pop(0)
+                res.attempts += 1
+                progress.started()
+                fut = pool.submit(_worker_entry, res.run.cfg.to_dict(), threads, _log_path(res.run))
+                running[fut] = (res, time.perf_counter())
+            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for fut in done:
+                res, t0 = running.pop(fut)
+                try:
+                    out = fut.result()
+                except BrokenProcessPool:
+                    # a worker died (killed, out of memory): that run failed; start a fresh pool for the rest
+                    out = {"status": "failed", "error": "worker process died (killed or out of memory)"}
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    for other, (ores, _) in list(running.items()):  # their futures are broken too: resubmit
+                        ores.attempts -= 1
+                        queue.insert(0, ores)
+                        progress.counts["running"] -= 1
+                        running.pop(other)
+                    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1)
+                _settle(res, out, time.perf_counter() - t0)
+                final = res.status == "done" or res.attempts > retries
+                progress.finished(res, final)
+                if not final:
+                    queue.append(res)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def ray_missing_message() -> str:
+    return "the ray backend needs Ray: pip install 'warpnerf[cluster]' (or: pip install ray)"
+
+
+def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: Optional[str],
+             progress: _Progress) -> None:
+    """One Ray task per run with the spec's resources; output streamed by Ray, results gathered here."""
+    import ray
+
+    if not ray.is_initialized():
+        ray.init(address=address, log_to_driver=True)
+    num_cpus = spec.num_cpus if spec.num_cpus is not None else 1
+    task = ray.remote(execute_run).options(num_cpus=num_cpus, num_gpus=spec.num_gpus, max_retries=0)
+    threads = max(1, int(num_cpus))
+    running: dict = {}
+
+    def submit(res: RunResult):
+        res.attempts += 1
+        progress.started()
+        ref = task.remote(res.run.cfg.to_dict(), threads, _log_path(res.run), True)
+        running[ref] = (res, time.perf_counter())
+
+    for res in pending:
+        submit(res)  # Ray queues what does not fit the cluster's free resources
+    while running:
+        done, _ = ray.wait(list(running), num_returns=1)
+        ref = done[0]
+        res, t0 = running.pop(ref)
+        try:
+            out = ray.get(ref)
+        except Exception as e:  # noqa: BLE001 - worker crash, node lost: the run failed
+            out = {"status": "failed", "error": _one_line(e)}
+        _settle(res, out, time.perf_counter() - t0)
+        final = res.status == "done" or res.attempts > retries
+        progress.finished(res, final)
+        if not final:
+            submit(res)
+
+
+def _settle(res: RunResult, out: dict, seconds: float) -> None:
+    res.status = out["status"]
+    res.metrics = out.get("metrics")
+    res.error = out.get("error", "")
+    res.seconds = seconds
+    res.machine = out.get("machine", "")
+
+
+# ----------------------------------------------------------------------------- the sweep
+
+def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_address: Optional[str] = None,
+              retries: Optional[int] = None, progress: bool = True) -> dict:
+    """Run (or skip) every run of ``spec`` and write ``table.md``, plots and ``sweep.json`` under ``spec.out``.
+
+    Returns ``{"results": [RunResult], "table": markdown, "failed": [RunResult]}``.
+    Raises ``ConfigError`` for a bad spec and ``SweepError`` when the Ray backend is not installed.
+    """
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"unknown backend '{backend}': expected local or ray")
+    if backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise SweepError(ray_missing_message()) from None
+    retries = spec.retries if retries is None else retries
+    if retries < 0:
+        raise ConfigError(f"retries must be >= 0, got {retries}")
+    from warpnerf.runs.run import finished_metrics
+
+    runs = expand(spec)
+    results = [RunResult(r) for r in runs]
+    for res in results:
+        done = finished_metrics(res.run.cfg)
+        if done is not None:
+            res.status, res.metrics = "skipped", done
+            with contextlib.suppress(OSError):
+                with open(os.path.join(res.run.cfg.run_dir(), MACHINE_FILE)) as fh:
+                    res.machine = fh.read().strip()
+    pending = [r for r in results if r.status != "skipped"]
+    os.makedirs(spec.out, exist_ok=True)
+    bar = _Progress(len(results), len(results) - len(pending), progress)
+    bar.write(f"sweep: {len(results)} runs, {len(results) - len(pending)} already finished (skipped), "
+              f"{len(pending)} to run on the {backend} backend")
+    try:
+        if pending:
+            if backend == "ray":
+                _run_ray(pending, spec, retries, ray_address, bar)
+            else:
+                _run_local(pending, spec, retries, workers, bar)
+    finally:
+        bar.close()
+        _write_status(spec, results)
+    from warpnerf.studies.table import write_tables
+
+    text = write_tables(spec, results)
+    failed = [r for r in results if r.status == "failed"]
+    return {"results": results, "table": text, "failed": failed}
+
+
+class SweepError(RuntimeError):
+    """A sweep that cannot start (e.g. the Ray backend without Ray installed); one line."""
+
+
+def _write_status(spec: SweepSpec, results: list[RunResult]) -> None:
+    rows = [{"run": r.run.name, "run_dir": r.run.cfg.run_dir(), "scene": r.run.scene, "task": r.run.task,
+             "model": r.run.model, "arm": r.run.arm, "seed": r.run.seed, "status": r.status, "error": r.error,
+             "attempts": r.attempts, "seconds": round(r.seconds, 2), "machine": r.machine} for r in results]
+    tmp = os.path.join(spec.out, "sweep.json.tmp")
+    with open(tmp, "w") as fh:
+        json.dump({"runs": rows}, fh, indent=1)
+    os.replace(tmp, os.path.join(spec.out, "sweep.json"))  # a killed sweep never leaves half a file
+
+
+# ----------------------------------------------------------------------------- CLI
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("sweep", help="run a grid of trainings from a TOML spec (local or Ray) into tables")
+    p.add_argument("spec", help="sweep spec (TOML; see docs/sweep.md)")
+    p.add_argument("--backend", default="local", choices=["local", "ray"])
+    p.add_argument("--workers", type=int, default=1, help="local: worker processes, one run each (default 1: in process)")
+    p.add_argument("--ray-address", default=None, help="ray: cluster address (host:port or auto); default: start a local one")
+    p.add_argument("--retries", type=int, default=None, help="retries of a failed run (default: the spec's, else 1)")
+    p.add_argument("--out", default=None, help="override the spec's out folder")
+    p.add_argument("--data-root", default=None, help="override the spec's data_root")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run)")
+    p.set_defaults(func=run_cli)
+
+
+def run_cli(args) -> int:
+    spec = load_spec(args.spec)
+    if args.out:
+        spec.out = args.out
+    if args.data_root:
+        spec.data_root = args.data_root
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        res = run_sweep(spec, backend=args.backend, workers=args.workers, ray_address=args.ray_address,
+                        retries=args.retries, progress=not args.quiet)
+    except SweepError as e:
+        print(f"warpnerf: error: {e}", file=sys.stderr)
+        return 2
+    print(res["table"])
+    return report_failures(res["failed"])
+
+
+def report_failures(failed: list[RunResult]) -> int:
+    """Print one line per failed run; exit code 1 when any failed, else 0."""
+    for r in failed:
+        print(f"failed: {r.run.name} after {r.attempts} attempt(s): {r.error} (log: {_log_path(r.run)})",
+              file=sys.stderr)
+    return 1 if failed else 0

@@ -1,0 +1,1 @@
+"""Training: the config, the loop, its tasks, evaluation, checkpoints, metrics and plots."""

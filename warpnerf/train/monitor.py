@@ -1,0 +1,143 @@
+"""Training curves beyond the batch loss: held-out PSNR, G²fR state, pose error, TensorBoard.
+
+A :class:`Monitor` is one of ``Trainer.callbacks``: ``fit`` calls it as ``monitor(trainer, step,
+stats)`` after every step. It
+
+* every ``cfg.heldout_every`` steps (and at the last step) renders ``cfg.heldout_views`` test
+  views at half resolution and appends their mean PSNR to ``trainer.history["heldout"]`` as
+  (step, dB) pairs, so ``history.json`` and ``training.png`` get the held-out curve;
+* every ``cfg.log_every`` steps appends the encoding's L_Ψ to ``trainer.history["lipschitz"]``;
+* with ``cfg.log == "tensorboard"`` writes scalars every ``cfg.log_every`` steps to
+  ``<run>/tb`` (``pip install 'warpnerf[log]'``, view with ``tensorboard --logdir runs``).
+
+TensorBoard tags (:data:`TAGS`): ``train/loss`` (MSE), ``train/psnr`` (dB, training batch),
+``heldout/psnr`` (dB), ``g2fr/active_levels``, ``g2fr/lipschitz`` (L_Ψ, paper eq. 17, see
+:func:`lipschitz_bound`), ``pose/rot_err_deg`` and ``pose/trans_err_x100`` (pose task only,
+after Sim(3) alignment), ``perf/samples_per_ray``, ``perf/step_seconds`` (wall time per step,
+averaged since the previous log; includes the held-out renders of that interval).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Optional
+
+import torch
+
+from warpnerf.train import metrics as M
+
+TAGS = ("train/loss", "train/psnr", "heldout/psnr", "g2fr/active_levels", "g2fr/lipschitz", "pose/rot_err_deg",
+        "pose/trans_err_x100", "perf/samples_per_ray", "perf/step_seconds")
+
+
+@torch.no_grad()
+def lipschitz_bound(encoder, level_weights: Optional[torch.Tensor], n_pairs: int = 4096, eps: float = 1e-3,
+                    seed: int = 0) -> float:
+    """Monte-Carlo estimate of the encoding's Lipschitz constant L_Ψ (paper eq. 17), unit-box coordinates.
+
+    L_Ψ = sup ||Ψ(x) - Ψ(y)||_2 / ||x - y||_2 with Ψ the level-weighted encoding, i.e.
+    ||Ψ(x) - Ψ(y)||² = Σ_m w_m² <ψ_m(x) - ψ_m(y), ψ_m(x) - ψ_m(y)>; the encoders apply w_m to
+    each level's features, so the weighted difference is the difference of their outputs. The
+    sup is estimated by the max over ``n_pairs`` random pairs at distance ``eps`` (fixed
+    ``seed``, so successive calls in a run use the same pairs and the curve is comparable):
+    a lower bound of the true sup that approaches the largest local gradient norm.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.rand(n_pairs, 3, generator=gen) * (1 - 2 * eps) + eps
+    u = torch.nn.functional.normalize(torch.randn(n_pairs, 3, generator=gen), dim=-1)
+    dev = next(encoder.parameters()).device
+    x, y = x.to(dev), (x + eps * u).to(dev)
+    w = None if level_weights is None else level_weights.to(dev)
+    diff = encoder(x.contiguous(), w) - encoder(y.contiguous(), w)
+    return float((diff.norm(dim=-1) / (x - y).norm(dim=-1)).max())
+
+
+def _area_downscale(img: torch.Tensor, f: int) -> torch.Tensor:
+    h, w = img.shape[0] // f * f, img.shape[1] // f * f
+    return img[:h, :w].reshape(h // f, f, w // f, f, -1).mean((1, 3))
+
+
+class Monitor:
+    """The ``Trainer.fit`` callback that records held-out PSNR and writes TensorBoard scalars."""
+
+    def __init__(self, trainer, log_dir: Optional[str] = None):
+        cfg = trainer.cfg
+        self.every = max(int(cfg.log_every), 1)
+        self.heldout_every = int(cfg.heldout_every)
+        self.writer = None
+        if cfg.log == "tensorboard":
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError:
+                from warpnerf.train.config import ConfigError
+
+                raise ConfigError("--log tensorboard needs the tensorboard package: "
+                                  "pip install 'warpnerf[log]'") from None
+            self.writer = SummaryWriter(log_dir or os.path.join(cfg.run_dir(), "tb"))
+        elif cfg.log != "none":
+            from warpnerf.train.config import ConfigError
+
+            raise ConfigError(f"unknown --log '{cfg.log}': expected none or tensorboard")
+        self._heldout = self._heldout_views(trainer) if self.heldout_every > 0 else None
+        trainer.history.setdefault("heldout", [])  # (step, PSNR dB) pairs
+        trainer.history.setdefault("lipschitz", [])  # (step, L_Psi) pairs
+        self._t_last, self._step_last = time.perf_counter(), -1
+        self.heldout_seconds = 0.0
+
+    def _heldout_views(self, trainer):
+        """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics)."""
+        from warpnerf.runs.video import test_cameras
+
+        test = trainer.scene.test
+        k = min(max(int(trainer.cfg.heldout_views), 1), len(test))
+        pick = torch.linspace(0, len(test) - 1, k).round().long()
+        # pose task: ground-truth test poses mapped by the current training-camera alignment, no refinement
+        self._test_c2w = lambda: test_cameras(trainer)[pick]
+        f = 2 if min(test.height, test.width) >= 64 else 1  # half resolution: 4x cheaper renders
+        images = torch.stack([_area_downscale(test.images[i], f) for i in pick.tolist()])
+        return images, test.focal / f, test.cx / f, test.cy / f
+
+    def heldout_psnr(self, trainer, step: int) -> float:
+        """Mean PSNR (dB) of the held-out views rendered with the field and level weights of ``step``."""
+        images, focal, cx, cy = self._heldout
+        weights = trainer.level_weights(step)
+        psnrs = []
+        for c2w, gt in zip(self._test_c2w(), images):
+            out = trainer.renderer.render_image(c2w.to(trainer.device), gt.shape[0], gt.shape[1], focal, cx, cy,
+                                                weights)
+            psnrs.append(M.psnr(out["rgb"].clamp(0, 1).cpu(), gt))
+        return float(sum(psnrs) / len(psnrs))
+
+    def __call__(self, trainer, step: int, stats: dict) -> None:
+        last = step == trainer.cfg.iters - 1
+        values = {}
+        if self._heldout is not None and ((step + 1) % self.heldout_every == 0 or last):
+            t0 = time.perf_counter()
+            value = self.heldout_psnr(trainer, step)
+            self.heldout_seconds += time.perf_counter() - t0
+            trainer.history["heldout"].append((step, value))
+            values["heldout/psnr"] = value
+        if step % self.every == 0 or last:
+            now = time.perf_counter()
+            values.update({
+                "train/loss": stats["loss"],
+                "train/psnr": M.psnr_from_mse(stats["loss"]),
+                "g2fr/active_levels": trainer.schedule.active_levels(step),
+                "g2fr/lipschitz": lipschitz_bound(trainer.field.encoder, trainer.level_weights(step)),
+                "perf/samples_per_ray": stats["samples_per_ray"],
+                "perf/step_seconds": (now - self._t_last) / max(step - self._step_last, 1),
+            })
+            self._t_last, self._step_last = now, step
+            trainer.history["lipschitz"].append((step, values["g2fr/lipschitz"]))
+            hist = getattr(trainer.task, "history", None)
+            if hist and hist.get("rot_err_deg"):
+                values["pose/rot_err_deg"] = hist["rot_err_deg"][-1]
+                values["pose/trans_err_x100"] = hist["trans_err_x100"][-1]
+        if self.writer is not None:
+            for tag, v in values.items():
+                self.writer.add_scalar(tag, float(v), step)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
