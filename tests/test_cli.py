@@ -97,7 +97,7 @@ def test_main_command_end_to_end_on_tiny_builtin(tmp_path):
     assert json.loads((out / "eval" / "metrics.json").read_text())["psnr"] == pytest.approx(m["psnr"], abs=1e-4)
     # `table --reuse` reads a finished run only when its configuration is identical
     from warpnerf.train.config import build_config, load_toml
-    from warpnerf.runs.run import finished_metrics
+    from warpnerf.runs.folder import finished_metrics
 
     values = load_toml(str(out / "config.toml"))
     cfg = build_config(values.pop("task"), overrides=values)

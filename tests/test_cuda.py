@@ -194,7 +194,7 @@ def _tiny_cfg(**kw):
 def _trainer(cfg, device, cache):
     import os
 
-    from warpnerf.runs.run import load_scene_for
+    from warpnerf.runs.folder import load_scene_for
     from warpnerf.train.tasks import make_task
     from warpnerf.train.trainer import Trainer
 

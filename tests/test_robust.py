@@ -291,7 +291,7 @@ def test_out_is_foreign_folder(tmp_path):
 def _fake_run(folder, cfg_overrides=None, finished=True, checkpoint_bytes=None):
     """A run folder as train writes it (config.toml, metrics.json with the config hash)."""
     from warpnerf.train.config import build_config
-    from warpnerf.runs.run import config_hash, write_config
+    from warpnerf.runs.folder import config_hash, write_config
 
     os.makedirs(folder, exist_ok=True)
     cfg = build_config("full", overrides={"out": str(folder), "iters": 2, "video_frames": 0, "threads": 1,
@@ -388,7 +388,7 @@ def test_eval_refuses_unfinished_and_truncated(tmp_path):
 
 
 def test_config_toml_round_trips_quotes_and_backslashes(tmp_path):
-    from warpnerf.runs.run import config_hash, read_run_config, write_config
+    from warpnerf.runs.folder import config_hash, read_run_config, write_config
     from warpnerf.train.config import build_config
 
     out = str(tmp_path / 'we"ird\\run')

@@ -102,7 +102,7 @@ def test_render_bad_path_is_one_line_error(chair_run, capsys):
 
 
 def test_spiral_path_of_a_run(chair_run):
-    from warpnerf.runs.video import load_run
+    from warpnerf.runs.folder import load_run
 
     trainer = load_run(str(chair_run), "cpu")
     cams = make_path(trainer, "spiral", 8, scale=0.5)

@@ -16,8 +16,9 @@ import torch
 
 from warpnerf import device as devmod
 from warpnerf.geometry.cameras import camera_frame_residuals, evaluate_poses, perturb_poses
+from warpnerf.runs.folder import load_scene_for, read_run_config
 from warpnerf.train.checkpoint import load_checkpoint
-from warpnerf.runs.run import load_scene_for, make_task, read_run_config
+from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer
 
 def fmt(v: torch.Tensor) -> str:

@@ -65,7 +65,8 @@ def cmd_bench(args) -> int:
 def cmd_train(args) -> int:
     from warpnerf.cli.flags import config_overrides
     from warpnerf.train.config import build_config, load_toml
-    from warpnerf.runs.run import read_run_config, run_training
+    from warpnerf.runs.folder import read_run_config
+    from warpnerf.runs.run import run_training
 
     overrides = config_overrides(args)  # None = not given: the preset or --config file keeps its value
     task = args.task

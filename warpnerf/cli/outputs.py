@@ -55,7 +55,8 @@ def add_output_commands(sub) -> None:
 
 def cmd_render(args) -> int:
     from warpnerf.cli.errors import UserError
-    from warpnerf.runs.video import PathError, load_run, make_path, render_frames, write_camera_path_json, write_video
+    from warpnerf.runs.folder import load_run
+    from warpnerf.runs.video import PathError, make_path, render_frames, write_camera_path_json, write_video
 
     if args.fps <= 0 or args.scale <= 0:
         raise UserError("--fps and --scale must be > 0")
@@ -78,7 +79,7 @@ def cmd_render(args) -> int:
 def cmd_export(args) -> int:
     from warpnerf.cli.errors import UserError
     from warpnerf.outputs.export import DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply
-    from warpnerf.runs.video import load_run
+    from warpnerf.runs.folder import load_run
 
     if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
         raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")

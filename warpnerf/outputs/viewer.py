@@ -21,6 +21,8 @@ from typing import Optional
 import numpy as np
 import torch
 
+from warpnerf.runs.folder import CHECKPOINT, load_run, read_checkpoint
+
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
 
 
@@ -75,15 +77,13 @@ class RunViewer:
     """
 
     def __init__(self, run_dir: str, device: str = "auto", preview_height: int = 160):
-        from warpnerf.runs.video import load_run
-
         self.run_dir = run_dir
-        self.ckpt = os.path.join(run_dir, "checkpoint.pt")
+        self.ckpt = os.path.join(run_dir, CHECKPOINT)
         self.preview_height = int(preview_height)
         self.trainer = load_run(run_dir, device)
         self.lock = threading.Lock()  # one render or reload at a time
         self._mtime = os.path.getmtime(self.ckpt)
-        self.step = self._step_of(torch.load(self.ckpt, map_location="cpu"))
+        self.step = self.trainer.step  # the checkpoint's step (load_run restored it)
         self.renders = 0  # images sent to browsers (tests read it)
 
     def _step_of(self, state: dict) -> int:
@@ -98,8 +98,8 @@ class RunViewer:
         if mtime == self._mtime:
             return False
         try:
-            state = torch.load(self.ckpt, map_location=self.trainer.device)
-        except Exception:  # caught mid-write by a training process: try again at the next poll
+            state = read_checkpoint(self.run_dir, map_location=self.trainer.device)
+        except Exception:  # caught mid-write by a training process (or not a checkpoint): try again at the next poll
             return False
         with self.lock:
             self.trainer.load_state_dict(state)

@@ -13,7 +13,6 @@ Run folder layout::
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from typing import Optional
@@ -21,81 +20,12 @@ from typing import Optional
 import torch
 
 from warpnerf import device as devmod
-from warpnerf.train.checkpoint import atomic_write_text
-from warpnerf.train.config import ConfigError, TrainConfig, build_config, forward_facing_preset, load_toml
+from warpnerf.runs.folder import (CHECKPOINT, RESULT_NEUTRAL_KEYS, config_hash, folder_state, load_scene_for,
+                                  read_checkpoint, read_metrics, read_run_config, write_config)
+from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
 from warpnerf.train.evaluate import evaluate, write_json
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer, TrainingError
-
-
-def load_scene_for(cfg: TrainConfig, progress: bool = True):
-    from warpnerf.data.resolve import load_scene
-
-    return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
-                      builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
-                      unbounded=cfg.unbounded)
-
-
-RESULT_NEUTRAL_KEYS = ("out", "device", "threads")  # change where/how fast a run goes, not its numbers
-
-
-def config_text(cfg: TrainConfig) -> str:
-    """The resolved configuration as TOML (what ``config.toml`` of a run folder holds).
-
-    Written by a real TOML writer so quotes and backslashes in paths survive the round trip;
-    None values are left out (TOML has no null: an absent key means the default)."""
-    import tomli_w
-
-    return tomli_w.dumps({k: v for k, v in cfg.to_dict().items() if v is not None})
-
-
-def config_hash(cfg: TrainConfig) -> str:
-    """sha256 (hex) of the configuration without the keys that do not change results
-    (:data:`RESULT_NEUTRAL_KEYS`): metrics.json and checkpoints carry it, and resume, eval and
-    ``table --reuse`` compare it."""
-    import hashlib
-
-    import tomli_w
-
-    values = {k: v for k, v in cfg.to_dict().items() if v is not None and k not in RESULT_NEUTRAL_KEYS}
-    return hashlib.sha256(tomli_w.dumps(values).encode("utf-8")).hexdigest()
-
-
-def write_config(path: str, cfg: TrainConfig) -> None:
-    atomic_write_text(path, config_text(cfg))
-
-
-def read_run_config(run_dir: str) -> TrainConfig:
-    """The TrainConfig stored in ``run_dir/config.toml`` (``out`` set to ``run_dir``)."""
-    path = os.path.join(run_dir, "config.toml")
-    if not os.path.isfile(path):
-        raise ConfigError(f"not a warpnerf run folder: {path} is missing")
-    values = load_toml(path)
-    task = values.pop("task", None)
-    if task is None:
-        raise ConfigError(f"{path}: missing key 'task'")
-    values["out"] = run_dir
-    return build_config(task, overrides=values)
-
-
-def read_metrics(run_dir: str) -> Optional[dict]:
-    """metrics.json of a run folder, or None when absent or unreadable (a run that never finished)."""
-    path = os.path.join(run_dir, "metrics.json")
-    try:
-        with open(path) as fh:
-            metrics = json.load(fh)
-    except (OSError, ValueError):
-        return None
-    return metrics if isinstance(metrics, dict) and "config_hash" in metrics else None
-
-
-def finished_metrics(cfg: TrainConfig) -> Optional[dict]:
-    """metrics.json of ``cfg.run_dir()`` if that folder holds a finished run of exactly ``cfg``
-    (same :func:`config_hash`); None otherwise."""
-    metrics = read_metrics(cfg.run_dir())
-    if metrics is None or metrics.get("config_hash") != config_hash(cfg):
-        return None
-    return metrics
 
 
 def _configure_lpips(cfg: TrainConfig) -> None:
@@ -107,20 +37,6 @@ def _configure_lpips(cfg: TrainConfig) -> None:
         metrics.configure_lpips(cfg.lpips_weights)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-
-
-def folder_state(out_dir: str) -> str:
-    """"absent", "empty", "finished" (metrics.json), "unfinished" (config.toml, no metrics) or "foreign"."""
-    if not os.path.exists(out_dir):
-        return "absent"
-    if not os.path.isdir(out_dir):
-        return "foreign"
-    names = [n for n in os.listdir(out_dir) if not n.startswith(".tmp-")]
-    if not names:
-        return "empty"
-    if "config.toml" not in names:
-        return "foreign"
-    return "finished" if read_metrics(out_dir) is not None else "unfinished"
 
 
 def _check_writable(out_dir: str) -> None:
@@ -187,7 +103,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     import shutil
     import signal
 
-    from warpnerf.train.checkpoint import _fault, load_checkpoint, save_checkpoint
+    from warpnerf.train.checkpoint import _fault, save_checkpoint
 
     try:
         if cfg.threads is not None:
@@ -205,10 +121,10 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         print(f"{out_dir} is already finished; nothing to do")
         return dict(read_metrics(out_dir), already_finished=True)
     t_start = time.perf_counter()
-    ckpt_path = os.path.join(out_dir, "checkpoint.pt")
+    ckpt_path = os.path.join(out_dir, CHECKPOINT)
     state = None
     if mode == "resume" and os.path.exists(ckpt_path):  # a bad checkpoint fails before the scene loads
-        state = load_checkpoint(ckpt_path, map_location="cpu")
+        state = read_checkpoint(out_dir, map_location="cpu")
     scene = load_scene_for(cfg, progress)
     task = make_task(cfg)
     trainer = Trainer(cfg, scene, task, device)  # checks the view selection against the scene
@@ -329,8 +245,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
 def evaluate_run(run_dir: str, progress: bool = True, device: Optional[str] = None) -> dict:
     """Re-evaluate a finished run folder from its config and checkpoint; ``device`` overrides the
     run's (a CUDA-trained run can be scored on a CPU)."""
-    from warpnerf.train.checkpoint import load_checkpoint
-
     cfg = read_run_config(run_dir)
     metrics = read_metrics(run_dir)
     if metrics is None:
@@ -345,7 +259,7 @@ def evaluate_run(run_dir: str, progress: bool = True, device: Optional[str] = No
     except ValueError as e:
         raise ConfigError(str(e)) from None
     _configure_lpips(cfg)
-    state = load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location="cpu")
+    state = read_checkpoint(run_dir, map_location="cpu")
     if state.get("config_hash") != metrics["config_hash"]:
         raise ConfigError(f"{run_dir}/checkpoint.pt belongs to another configuration than {run_dir}/metrics.json")
     scene = load_scene_for(cfg, progress)

@@ -336,29 +336,3 @@ def read_video(path: str) -> list[np.ndarray]:
         return [np.asarray(f)[..., :3] for f in reader]
     finally:
         reader.close()
-
-
-# ---- loading a run folder --------------------------------------------------------------------
-
-
-def load_run(run_dir: str, device: str = "auto", progress: bool = False):
-    """A :class:`~warpnerf.train.trainer.Trainer` holding a finished run's field, occupancy grid and poses."""
-    from warpnerf import device as devmod
-    from warpnerf.train.config import ConfigError, build_config, load_toml
-    from warpnerf.runs.run import load_scene_for
-    from warpnerf.train.tasks import make_task
-    from warpnerf.train.trainer import Trainer
-
-    cfg_path, ckpt = os.path.join(run_dir, "config.toml"), os.path.join(run_dir, "checkpoint.pt")
-    for p in (cfg_path, ckpt):
-        if not os.path.exists(p):
-            raise ConfigError(f"not a finished run folder: {p} is missing")
-    values = load_toml(cfg_path)
-    values["device"] = device
-    cfg = build_config(values.pop("task"), overrides=values)
-    cfg.out = run_dir
-    dev = devmod.resolve_device(cfg.device)
-    scene = load_scene_for(cfg, progress)
-    trainer = Trainer(cfg, scene, make_task(cfg), dev)
-    trainer.load_state_dict(torch.load(ckpt, map_location=trainer.device))
-    return trainer

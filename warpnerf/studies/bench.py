@@ -367,7 +367,7 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     torch_repeats = repeats if torch_repeats is None else torch_repeats
     from warpnerf.train.config import build_config
-    from warpnerf.runs.run import load_scene_for
+    from warpnerf.runs.folder import load_scene_for
     from warpnerf.train.tasks import make_task
     from warpnerf.train.trainer import Trainer
 
@@ -457,7 +457,7 @@ def bench_render(run_dir: str, views: int = 5, device: str = "auto", every_sampl
     pixel. ``every_sample`` renders with early ray termination off (``stop_transmittance`` = 0:
     every marched sample evaluated), the reference the rounds are measured against."""
     from warpnerf.train.metrics import psnr
-    from warpnerf.runs.video import load_run
+    from warpnerf.runs.folder import load_run
 
     if views < 1:
         raise ValueError(f"views must be >= 1, got {views}")

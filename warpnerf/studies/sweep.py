@@ -237,7 +237,8 @@ def machine() -> str:
 def _continue_or_replace(cfg: TrainConfig) -> dict:
     """Train ``cfg`` in its run folder: an unfinished run of the same configuration (a worker that
     crashed or was stopped) continues from its last checkpoint; anything else there is replaced."""
-    from warpnerf.runs.run import config_hash, folder_state, read_run_config, run_training
+    from warpnerf.runs.folder import config_hash, folder_state, read_run_config
+    from warpnerf.runs.run import run_training
 
     if folder_state(cfg.run_dir()) == "unfinished":
         try:
@@ -509,7 +510,7 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
     retries = spec.retries if retries is None else retries
     if retries < 0:
         raise ConfigError(f"retries must be >= 0, got {retries}")
-    from warpnerf.runs.run import finished_metrics
+    from warpnerf.runs.folder import finished_metrics
 
     runs = expand(spec)
     results = [RunResult(r) for r in runs]
