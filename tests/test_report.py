@@ -1,0 +1,157 @@
+"""Results records and the report rendered from them (warpnerf/runs/record.py, warpnerf/studies/report.py)."""
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+import pytest
+
+from warpnerf.runs import record as R
+from warpnerf.studies import report
+from warpnerf.studies.paper import paper_numbers
+
+
+def _run_folder(path, metrics: dict, config_toml: str) -> str:
+    os.makedirs(path, exist_ok=True)
+    with open(os.path.join(path, "metrics.json"), "w") as fh:
+        json.dump(metrics, fh)
+    with open(os.path.join(path, "config.toml"), "w") as fh:
+        fh.write(config_toml)
+    return str(path)
+
+
+def _pose_metrics(seed, g2fr, rot, trans, psnr, scene="lego", source="dataset"):
+    return {"scene": scene, "scene_source": source, "task": "pose", "model": "ngp", "g2fr": g2fr, "iters": 3000,
+            "seed": seed, "rot_err_deg": rot, "trans_err_x100": trans, "psnr": psnr, "ssim": 0.9, "lpips": None,
+            "n_train_views": 100, "train_seconds": 200.0, "render_seconds_per_view": 0.5, "threads": 2,
+            "config_hash": "h", "heldout_history": [[0, 1.0]]}
+
+
+def _record(tmp_path, name, runs, other_cores=0.01, kind="table"):
+    cpu = {"wall_seconds": 10.0, "own_cpu_seconds": 19.0, "other_cores": other_cores,
+           "alone": other_cores < R.ALONE_MAX_OTHER_CORES}
+    rec = R.build_record(name, kind, ["table", "--scenes", "lego"], runs, cpu, threads=2)
+    path = R.record_path(name, str(tmp_path / "docs" / "results"))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    return R.write_record(path, rec)
+
+
+@pytest.mark.parametrize("name", ["../x", ".hidden", "a/b", "", "x.json", "a b"])
+def test_record_names_cannot_leave_the_folder(name, tmp_path):
+    with pytest.raises(R.RecordError):
+        R.record_path(name, str(tmp_path))
+
+
+def test_existing_record_is_refused_before_any_work(tmp_path):
+    path = R.check_new_record("lego_full", str(tmp_path))
+    assert path == os.path.join(str(tmp_path), "lego_full.json")
+    with open(path, "w") as fh:
+        fh.write("{}")
+    with pytest.raises(R.RecordError, match="exists"):
+        R.check_new_record("lego_full", str(tmp_path))
+    assert R.check_new_record("lego_full", str(tmp_path), replace=True) == path
+
+
+def test_record_round_trip_keeps_the_run_files(tmp_path):
+    m = _pose_metrics(0, True, 0.05, 0.2, 32.0)
+    run = _run_folder(tmp_path / "run", m, 'task = "pose"\nscene = "lego"\npose_noise = 0.15\n')
+    files = R.read_run_files(run)
+    assert files["config"] == {"task": "pose", "scene": "lego", "pose_noise": 0.15}
+    assert "heldout_history" not in files["metrics"]  # the per-step series stays in the run folder
+    assert files["metrics"]["rot_err_deg"] == 0.05
+    path = _record(tmp_path, "one", [files], kind="run")
+    rec = R.load_record(path)
+    assert rec["runs"][0] == json.loads(json.dumps(files))
+    assert rec["command"] == "warpnerf table --scenes lego"
+    assert rec["machine"]["cores"] == os.cpu_count() and rec["machine"]["threads"] == 2
+    assert rec["date"].endswith("Z")
+
+
+def test_a_broken_record_is_one_error(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "something else"}')
+    with pytest.raises(R.RecordError, match="not a warpnerf record"):
+        R.load_record(str(bad))
+    bad.write_text("{not json")
+    with pytest.raises(R.RecordError, match="not a readable record"):
+        R.load_record(str(bad))
+
+
+def test_cpu_meter_sees_another_process():
+    """A separate process spinning for the whole window shows up as about one other core."""
+    spinner = subprocess.Popen([sys.executable, "-c", "import time\nt=time.time()\nwhile time.time()-t<3: pass"])
+    try:
+        time.sleep(0.3)  # the interpreter has started and spins
+        meter = R.CpuMeter().start()
+        time.sleep(1.5)
+        out = meter.stop()
+    finally:
+        spinner.wait()
+    if out["other_cores"] is None:
+        pytest.skip("no /proc/stat on this system")
+    assert 0.6 <= out["other_cores"] <= 2.5
+    assert out["alone"] is False
+
+
+def test_cpu_meter_counts_own_work_as_own():
+    """Busy work in this process is not 'other': the other share stays below what it burned."""
+    meter = R.CpuMeter().start()
+    t = time.process_time()
+    while time.process_time() - t < 1.0:
+        pass
+    out = meter.stop()
+    if out["other_cores"] is None:
+        pytest.skip("no /proc/stat on this system")
+    assert out["own_cpu_seconds"] >= 0.9
+    # whatever else runs on the machine, our own second of CPU is not counted as someone else's
+    assert out["other_cores"] * out["wall_seconds"] <= (os.cpu_count() * out["wall_seconds"]) - 0.9 + 0.05
+
+
+def test_paper_table_means_seeds_and_sets_the_paper_beside(tmp_path):
+    runs = [R.read_run_files(_run_folder(tmp_path / f"r{i}", m, 'task = "pose"\npose_noise = 0.15\n'))
+            for i, m in enumerate([_pose_metrics(0, True, 0.040, 0.20, 32.0), _pose_metrics(1, True, 0.060, 0.10, 33.0),
+                                   _pose_metrics(0, False, 1.0, 4.0, 30.0),
+                                   _pose_metrics(0, True, 9.0, 9.0, 9.0, scene="chair", source="builtin")])]
+    _record(tmp_path, "tab1", runs)
+    rows = report.recorded_runs(R.load_records(str(tmp_path / "docs" / "results")))
+    text = report.paper_table("pose", rows)
+    lego = next(line for line in text.splitlines() if line.startswith("| lego"))
+    mean, std = statistics.fmean([0.040, 0.060]), statistics.stdev([0.040, 0.060])
+    paper = paper_numbers("lego", "pose", "ngp")
+    assert f"{mean:.3f} ± {std:.3f} ({paper['w/']['rot_err_deg']:.3f})" in lego
+    assert f"1.000 ({paper['w/o']['rot_err_deg']:.3f})" in lego
+    assert "seeds 0,1" in lego and "noise 0.15" in lego
+    assert "chair" not in text  # a built-in scene is not the paper's chair
+    assert "200k" not in text and "20k" in text  # the pose regime is quoted, not the few-shot one
+    assert report.paper_table("fewshot", rows) == "No record yet."
+
+
+def test_report_writes_and_check_catches_a_hand_edit(tmp_path, capsys):
+    runs = [R.read_run_files(_run_folder(tmp_path / "main", {**_pose_metrics(0, True, 0.1, 0.1, 23.08),
+                                                               "task": "fewshot", "scene": "chair"}, 'task = "fewshot"\n'))]
+    _record(tmp_path, "main_command", runs, other_cores=0.5, kind="run")
+    (tmp_path / "README.md").write_text(f"# x\n\n{report.BEGIN}\nold\n{report.END}\n\nmore\n")
+    args = type("A", (), {"root": str(tmp_path), "records": None, "check": True})
+    assert report.run_cli(args) == 1  # README's block and results.md are stale before the first render
+    args.check = False
+    assert report.run_cli(args) == 0
+    args.check = True
+    assert report.run_cli(args) == 0
+    readme = (tmp_path / "README.md").read_text()
+    assert "old" not in readme and readme.endswith("\n\nmore\n")
+    assert "| [main_command](docs/results/main_command.json) |" in readme
+    assert "| 23.08 |" in readme and "no (0.50)" in readme  # measured other-core share, not declared
+    assert "| lego_full | NeRF-synthetic lego, all 100 views | no record |" in readme
+    results = (tmp_path / "docs" / "results.md").read_text()
+    assert "[main_command](results/main_command.json)" in results
+    (tmp_path / "docs" / "results.md").write_text(results.replace("23.08", "25.00"))
+    assert report.run_cli(args) == 1
+    assert "stale" in capsys.readouterr().out
+
+
+def test_readme_without_markers_is_an_error(tmp_path):
+    with pytest.raises(R.RecordError, match="markers"):
+        report.render_readme("# no markers\n", [])
