@@ -32,7 +32,7 @@ import functools
 
 import warp as wp
 
-from .hashgrid import chunk_points, hashgrid_cell, hashgrid_cell64
+from warpnerf.kernels.hashgrid import chunk_points, hashgrid_cell, hashgrid_cell64
 
 
 @functools.lru_cache(maxsize=None)

@@ -31,7 +31,7 @@ CPU, while jumping to the exit of an empty cell (DDA) measured 3x slower overall
 
 import warp as wp
 
-from .occupancy import cell_index, grid_coords
+from warpnerf.kernels.occupancy import cell_index, grid_coords
 
 wp.set_module_options({"enable_backward": False})
 

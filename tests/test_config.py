@@ -5,9 +5,9 @@ from dataclasses import fields
 
 import pytest
 
-from warpnerf.train import config as C
 from warpnerf.cli.app import build_parser
 from warpnerf.cli.flags import config_overrides, flag_name
+from warpnerf.train import config as C
 
 
 def train_parser() -> argparse.ArgumentParser:
@@ -113,12 +113,12 @@ def test_toml_values_are_checked_against_the_annotations(tmp_path):
 
 
 def test_g2fr_beta_has_one_default():
+    from warpnerf.model.g2fr import G2FR_BETA, G2fRSchedule
     from warpnerf.studies import spectrum
-    from warpnerf.model.g2fr import G2fRSchedule
 
-    assert C.TrainConfig().g2fr_beta == C.G2FR_BETA
-    assert G2fRSchedule(4, 10).beta == C.G2FR_BETA
-    assert spectrum.FitConfig().beta == C.G2FR_BETA
+    assert C.TrainConfig().g2fr_beta == G2FR_BETA
+    assert G2fRSchedule(4, 10).beta == G2FR_BETA
+    assert spectrum.FitConfig().beta == G2FR_BETA
     for task in ("full", "fewshot", "pose"):  # presets do not restate it
         assert "g2fr_beta" not in C.load_toml(C.preset_path(task))
 

@@ -7,9 +7,9 @@ import torch
 pytest.importorskip("skimage")
 pytest.importorskip("plyfile")
 
-from warpnerf.outputs import export as E  # noqa: E402
 from warpnerf.cli import main  # noqa: E402
 from warpnerf.data.builtin import scene_mesh  # noqa: E402
+from warpnerf.outputs import export as E  # noqa: E402
 
 from chair_run import ITERS, RESOLUTION  # noqa: E402  (the session fixture chair_run is in conftest.py)
 

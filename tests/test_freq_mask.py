@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from warpnerf.train.config import G2FR_BETA
-from warpnerf.model.g2fr import MASK_MODES, G2fRSchedule, LevelWeights, g2fr_level_weight, g2fr_tau, g2fr_weights
+from warpnerf.model.g2fr import (G2FR_BETA, MASK_MODES, G2fRSchedule, LevelWeights, g2fr_level_weight, g2fr_tau,
+                                 g2fr_weights)
 
 
 def test_tau_sweeps_levels_over_beta_of_training():

@@ -3,8 +3,8 @@
 import numpy as np
 import torch
 
-from warpnerf.geometry.cameras import look_at
 from warpnerf.data import builtin
+from warpnerf.geometry.cameras import look_at
 
 
 def test_builtin_look_at_is_cameras_look_at():

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf.studies import spectrum as S
 from warpnerf.ops.hashgrid import hashgrid_encode
 from warpnerf.ops.hashgrid_spec import HashGridSpec
+from warpnerf.studies import spectrum as S
 
 # --------------------------------------------------------------------------------------------
 # single pulses (eq. 8, Fig. 3)

@@ -15,9 +15,9 @@ import time
 
 import pytest
 
-from warpnerf.train.config import ConfigError
 from warpnerf.studies.sweep import SweepError, SweepSpec, expand, load_spec, run_sweep
-from warpnerf.studies.table import tables_markdown
+from warpnerf.studies.tables import tables_markdown
+from warpnerf.train.config import ConfigError
 
 # the shared tiny field of tests/chair_run.py, 20 steps, one thread per run (num_cpus = 1)
 SPEC = """out = "{out}"

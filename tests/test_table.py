@@ -3,7 +3,7 @@
 import pytest
 
 from warpnerf.studies.paper import BARF, MIPNERF360, NERF_SYNTHETIC, PAPER, barf_numbers, paper_numbers
-from warpnerf.studies.table import format_table
+from warpnerf.studies.tables import format_table
 
 
 def arms(source="dataset", model="ngp"):
@@ -78,7 +78,7 @@ def test_missing_values_are_marked():
 def test_lego_mic_tables_for_both_models_and_tasks():
     """What `warpnerf table --scenes lego,mic --models ngp,mtrf --tasks pose,fewshot` prints, from given metrics."""
     from warpnerf.studies.sweep import RunResult, SweepSpec, expand
-    from warpnerf.studies.table import tables_markdown
+    from warpnerf.studies.tables import tables_markdown
 
     spec = SweepSpec(scenes=["lego", "mic"], models=["ngp", "mtrf"], tasks=["pose", "fewshot"], out="o")
     results = []
@@ -98,7 +98,7 @@ def test_lego_mic_tables_for_both_models_and_tasks():
 
 
 def test_seeds_are_averaged():
-    from warpnerf.studies.table import _mean_over_seeds
+    from warpnerf.studies.tables import _mean_over_seeds
 
     m = _mean_over_seeds([{"psnr": 20.0, "scene": "a", "g2fr": True}, {"psnr": 22.0, "scene": "a", "g2fr": True}])
     assert m == {"psnr": 21.0, "scene": "a", "g2fr": True}
@@ -107,7 +107,7 @@ def test_seeds_are_averaged():
 def test_fewshot_heldout_gap_and_plot(tmp_path):
     """The few-shot section names the step where w/ G2fR leads the baseline most, from both arms'
     held-out PSNR histories, and the comparison plot is written."""
-    from warpnerf.studies.table import heldout_gap, plot_heldout_comparison
+    from warpnerf.studies.tables import heldout_gap, plot_heldout_comparison
 
     arms_ = {"w/": {"heldout_history": [[499, 20.0], [999, 22.5], [1499, 23.0]]},
              "w/o": {"heldout_history": [[499, 20.5], [999, 21.0], [1499, 22.9]]}}
@@ -126,7 +126,8 @@ def test_several_seeds_give_means_and_the_per_seed_gap():
 
     from warpnerf.cli.app import build_parser
     from warpnerf.studies.sweep import RunResult, SweepSpec, expand
-    from warpnerf.studies.table import tables_markdown, table_spec
+    from warpnerf.studies.table import table_spec
+    from warpnerf.studies.tables import tables_markdown
 
     psnr = {("g2fr", 0): 23.69, ("nog2fr", 0): 24.02, ("g2fr", 1): 24.00, ("nog2fr", 1): 23.98,
             ("g2fr", 2): 23.86, ("nog2fr", 2): 24.26}

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from tiny_scene import tiny_scene
-from warpnerf.train.config import ConfigError, build_config
 from warpnerf.model.encoders import make_grid_encoder
+from warpnerf.train.config import ConfigError, build_config
 from warpnerf.train.monitor import TAGS, Monitor, lipschitz_bound
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer

@@ -7,8 +7,8 @@ import torch
 
 from tiny_scene import tiny_scene
 from warpnerf.train.config import ConfigError, build_config, load_toml
-from warpnerf.train.tasks import FewShotTask, farthest_view_order, make_task
 from warpnerf.train.evaluate import evaluate, refine_poses
+from warpnerf.train.tasks import FewShotTask, farthest_view_order, make_task
 from warpnerf.train.trainer import Trainer
 
 TINY = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128, hidden=32, target_samples=16384,

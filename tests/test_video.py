@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from chair_run import RESOLUTION, VIDEO_FRAMES  # the session fixture chair_run is in conftest.py
-from warpnerf.geometry.cameras import look_at
 from warpnerf.cli import main
+from warpnerf.geometry.cameras import look_at
 from warpnerf.runs.video import (CameraPath, look_target, make_path, orbit_path, read_camera_path_json, read_video,
                            scene_up, write_camera_path_json, write_video, have_ffmpeg)
 

@@ -4,9 +4,9 @@ import math
 
 import torch
 
+from warpnerf.data.scene import Scene, Views
 from warpnerf.geometry.cameras import look_at
 from warpnerf.geometry.rayspace import RaySpace
-from warpnerf.data.scene import Scene, Views
 from warpnerf.model.renderer import pixel_rays
 
 SPHERES = [  # centre, radius, color

@@ -14,6 +14,7 @@ the chunks run on one thread or on several (docs/design.md §3).
 
 from __future__ import annotations
 
+import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
@@ -26,11 +27,9 @@ _NUM_THREADS: int | None = None
 def init_warp():
     """Import and initialise Warp once (quietly); returns the ``warp`` module."""
     global _WARP_READY
-    import warp as wp
+    import warp as wp  # lazy: Warp loads with the first op that needs it, never with 'import warpnerf'
 
     if not _WARP_READY:
-        import logging
-
         # the init banner and per-module compile lines are INFO; keep the CLI output clean
         wp.config.log_level = logging.WARNING
         cache = os.environ.get("WARP_CACHE_PATH")
@@ -62,7 +61,7 @@ def resolve_device(name: str = "auto") -> str:
 
 def torch_device(device: str):
     """The ``torch.device`` that matches a Warp device string."""
-    import torch
+    import torch  # lazy: the command line imports this module before torch (OpenMP settings: openmp.py)
 
     return torch.device("cpu" if device == "cpu" else device)
 
@@ -93,7 +92,7 @@ def limit_cpu_threads(n: int) -> None:
     Without the second, two runs started side by side with ``--threads 1`` each still ran torch on
     every core: four busy threads on two cores made each run ~3x slower than half speed.
     """
-    import torch
+    import torch  # lazy: see torch_device
 
     set_num_threads(n)
     torch.set_num_threads(int(n))

@@ -1,14 +1,14 @@
 """The ``warpnerf`` command line: train, eval, scenes, table, sweep, bench, render, export, view, doctor, process.
 
-Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant.
-User errors (bad data, bad config) print one line and exit 2; ``--debug`` shows the traceback.
+Heavy imports (torch, warp) happen inside the subcommands so ``warpnerf --help`` is instant: the
+imports inside functions here are those (``# lazy``). User errors (bad data, bad config) print one
+line and exit 2; ``--debug`` shows the traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 # torch's OpenMP wait settings, before anything imports torch (the config registry below does): a
@@ -17,9 +17,12 @@ from warpnerf.openmp import set_wait_defaults
 
 set_wait_defaults()
 
+from warpnerf import device
+from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
-from warpnerf.cli.flags import add_config_flags
-from warpnerf.train.config import MODELS
+from warpnerf.cli.flags import add_config_flags, config_overrides
+from warpnerf.cli.outputs import add_output_commands
+from warpnerf.train.config import MODELS, ConfigError, build_config, load_toml
 
 
 def _add_device(p: argparse.ArgumentParser) -> None:
@@ -28,8 +31,6 @@ def _add_device(p: argparse.ArgumentParser) -> None:
 
 
 def _setup_device(args) -> str:
-    from warpnerf import device
-
     try:
         if args.threads is not None:
             device.limit_cpu_threads(args.threads)
@@ -39,7 +40,7 @@ def _setup_device(args) -> str:
 
 
 def cmd_bench(args) -> int:
-    from warpnerf.studies import bench
+    from warpnerf.studies import bench  # lazy: keeps --help fast (torch, Warp)
 
     _setup_device(args)
     if args.what == "encoding":
@@ -63,10 +64,8 @@ def cmd_bench(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from warpnerf.cli.flags import config_overrides
-    from warpnerf.train.config import build_config, load_toml
-    from warpnerf.runs.folder import read_run_config
-    from warpnerf.runs.run import run_training
+    from warpnerf.runs.folder import read_run_config  # lazy: keeps --help fast (torch)
+    from warpnerf.runs.run import run_training  # lazy: keeps --help fast (torch)
 
     overrides = config_overrides(args)  # None = not given: the preset or --config file keeps its value
     task = args.task
@@ -101,7 +100,7 @@ def _pose_summary(m: dict) -> list[str]:
     if "rot_err_deg" in m:
         aligned = " (orientations aligned)" if m.get("pose_alignment") == "orientations" else ""
         parts += [f"rot err {m['rot_err_deg']:.3f} deg{aligned}", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
-        from warpnerf.geometry.cameras import describe_unconverged
+        from warpnerf.geometry.cameras import describe_unconverged  # lazy: keeps --help fast (torch)
 
         stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so
         if stuck:
@@ -115,7 +114,7 @@ def _pose_summary(m: dict) -> list[str]:
 
 
 def cmd_eval(args) -> int:
-    from warpnerf.runs.run import evaluate_run
+    from warpnerf.runs.run import evaluate_run  # lazy: keeps --help fast (torch)
 
     _setup_device(args)
     res = evaluate_run(args.run, progress=not args.quiet, device=args.device)
@@ -125,7 +124,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_scenes(args) -> int:
-    from warpnerf.data.resolve import describe_scenes
+    from warpnerf.data.resolve import describe_scenes  # lazy: keeps --help fast (torch)
 
     print(describe_scenes(args.data_root))
     return 0
@@ -143,8 +142,8 @@ def _seed_list(text: str) -> list[int]:
 
 
 def cmd_table(args) -> int:
-    from warpnerf.studies.sweep import report_failures
-    from warpnerf.studies.table import run_table
+    from warpnerf.studies.sweep import report_failures  # lazy: keeps --help fast (torch)
+    from warpnerf.studies.table import run_table  # lazy: keeps --help fast (torch)
 
     _setup_device(args)
     res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
@@ -205,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_device(tb)
     tb.set_defaults(func=cmd_table)
-    from warpnerf.studies import sweep  # 'warpnerf sweep SPEC.toml' (local or Ray backend)
+    from warpnerf.studies import sweep  # lazy (torch): 'warpnerf sweep SPEC.toml' (local or Ray backend)
 
     sweep.add_parser(sub)
 
@@ -226,14 +225,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render: early ray termination off (every marched sample evaluated), the reference")
     _add_device(b)
     b.set_defaults(func=cmd_bench)
-    from warpnerf.cli.outputs import add_output_commands  # render, export, view (commands on a finished run)
-
-    add_output_commands(sub)
-    from warpnerf.cli import doctor  # machine report; imports torch/warp only when it runs
-
-    doctor.add_parser(sub)
-
-    from warpnerf.data.process import add_parser as add_process_parser  # photos -> COLMAP -> dataset (issue 12)
+    add_output_commands(sub)  # render, export, view (commands on a finished run)
+    doctor.add_parser(sub)  # machine report; imports torch/warp only when it runs
+    # photos -> COLMAP -> dataset (issue 12)
+    from warpnerf.data.process import add_parser as add_process_parser  # lazy: warpnerf.data loads torch
 
     add_process_parser(sub)
     return parser
@@ -242,15 +237,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from warpnerf.train.config import ConfigError
-
     user_errors: tuple = (UserError, ConfigError)
     interrupted: tuple = ()
     try:
-        from warpnerf.train.checkpoint import CheckpointError
-        from warpnerf.data.errors import DatasetError
-        from warpnerf.runs.run import TrainingInterrupted
-        from warpnerf.train.trainer import TrainingError
+        # after parsing, so that --help never loads torch and the trainer for these error types
+        from warpnerf.data.errors import DatasetError  # lazy: see above
+        from warpnerf.runs.run import TrainingInterrupted  # lazy: see above
+        from warpnerf.train.checkpoint import CheckpointError  # lazy: see above
+        from warpnerf.train.trainer import TrainingError  # lazy: see above
 
         user_errors += (DatasetError, TrainingError, CheckpointError)
         interrupted = (TrainingInterrupted,)

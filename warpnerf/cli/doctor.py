@@ -14,8 +14,11 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+from importlib.metadata import PackageNotFoundError, version
 
 from warpnerf import openmp
+from warpnerf.cli.errors import UserError
+from warpnerf.device import init_warp, num_threads
 
 
 def add_parser(sub) -> None:
@@ -29,7 +32,7 @@ def add_parser(sub) -> None:
 
 
 def _parse_archs(text: str | None) -> tuple[int, ...]:
-    from warpnerf.ops.registry import WANTED_ARCHS
+    from warpnerf.ops.registry import WANTED_ARCHS  # lazy: keeps --help fast (warpnerf.ops loads torch)
 
     if not text:
         return WANTED_ARCHS
@@ -38,21 +41,18 @@ def _parse_archs(text: str | None) -> tuple[int, ...]:
     except ValueError:
         archs = ()
     if not archs or any(a < 50 for a in archs):
-        from warpnerf.cli.errors import UserError
-
         raise UserError(f"--arch must be comma-separated SM numbers such as 80,90, got '{text}'")
     return archs
 
 
 def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None) -> dict:
     """Everything ``doctor`` reports, as a dict (also used by the tests)."""
-    import torch
+    import torch  # lazy: keeps --help fast
 
-    from warpnerf.device import init_warp, num_threads
-    from warpnerf.ops import registry
+    from warpnerf.ops import registry  # lazy: keeps --help fast (torch)
 
     wp = init_warp()
-    from warp._src.context import runtime  # toolkit/driver versions have no public accessor in 1.19
+    from warp._src.context import runtime  # lazy (Warp); toolkit/driver versions have no public accessor in 1.19
 
     info: dict = {
         "warpnerf": _package_version(),
@@ -166,8 +166,6 @@ def problems(info: dict) -> list[str]:
 
 
 def _package_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("warpnerf")
     except PackageNotFoundError:

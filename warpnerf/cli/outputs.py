@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from warpnerf.cli.errors import UserError
+
 
 def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", required=True, help="run folder written by 'warpnerf train'")
@@ -54,9 +56,9 @@ def add_output_commands(sub) -> None:
 
 
 def cmd_render(args) -> int:
-    from warpnerf.cli.errors import UserError
-    from warpnerf.runs.folder import load_run
-    from warpnerf.runs.video import PathError, make_path, render_frames, write_camera_path_json, write_video
+    from warpnerf.runs.folder import load_run  # lazy: keeps --help fast (torch)
+    from warpnerf.runs.video import (PathError, make_path, render_frames,  # lazy: keeps --help fast (torch)
+                                     write_camera_path_json, write_video)
 
     if args.fps <= 0 or args.scale <= 0:
         raise UserError("--fps and --scale must be > 0")
@@ -77,9 +79,9 @@ def cmd_render(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from warpnerf.cli.errors import UserError
-    from warpnerf.outputs.export import DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply
-    from warpnerf.runs.folder import load_run
+    from warpnerf.outputs.export import (DEFAULT_THRESHOLD, ExportError,  # lazy: keeps --help fast (torch)
+                                         extract_mesh, extract_points, write_ply)
+    from warpnerf.runs.folder import load_run  # lazy: keeps --help fast (torch)
 
     if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
         raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")
@@ -104,13 +106,11 @@ def cmd_export(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from warpnerf.cli.errors import UserError
-
     try:
-        import viser  # noqa: F401
+        import viser  # noqa: F401  # optional extra: warpnerf[viewer]
     except ImportError:
         raise UserError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
-    from warpnerf.outputs.viewer import RunViewer, serve, wait_for_checkpoint
+    from warpnerf.outputs.viewer import RunViewer, serve, wait_for_checkpoint  # lazy: keeps --help fast (torch)
 
     if args.wait > 0 and not wait_for_checkpoint(args.run, args.wait):
         raise UserError(f"no checkpoint.pt appeared in {args.run} within {args.wait:.0f} s")

@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import numpy as np
 import torch
 
 from warpnerf.data.errors import DatasetError, check_frames, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
-from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
+from warpnerf.geometry.rayspace import RaySpace
 
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
 BLENDER_AABB = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
@@ -107,7 +108,7 @@ def read_depth(path: str, depth_scale: float | None) -> np.ndarray:
     try:
         if path.endswith(".npy"):
             return np.load(path).astype(np.float32)
-        import imageio.v3 as iio
+        import imageio.v3 as iio  # lazy: codecs stay out of --help (~0.08 s)
 
         raw = iio.imread(path)
     except Exception as exc:
@@ -135,8 +136,6 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
         if not allow_rgb:
             raise DatasetError(f"{paths[0]} has no alpha channel but the Blender layout promises RGBA "
                                "(pass --allow-rgb to train on it as is)")
-        import sys
-
         print(f"warpnerf: warning: {paths[0]} has no alpha channel; images are used as is", file=sys.stderr)
     h, w = h0 // downscale, w0 // downscale
     images = np.empty((n, h, w, 3), np.float32)

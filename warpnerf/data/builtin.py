@@ -39,11 +39,17 @@ import uuid
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from warpnerf.geometry import cameras
-from warpnerf.data.builtin_meshes import SCENES, SceneMesh
+from warpnerf.data.blender import load_blender, read_depth, read_transforms
+from warpnerf.data.builtin_meshes import SCENES, SceneMesh, garden_environment, garden_mesh
 from warpnerf.data.errors import DatasetError
+from warpnerf.data.images import load_parallel
+from warpnerf.data.llff import load_llff
 from warpnerf.data.scene import Scene
+from warpnerf.device import init_warp, num_threads, run_chunks, split_range
+from warpnerf.geometry import cameras
+from warpnerf.geometry.rayspace import RaySpace
 
 GENERATOR_VERSION = 1
 DEFAULT_RESOLUTION = 200  # pixels (square): all 400 views render+write in ~5-7 s on 2 shared CPU cores
@@ -207,11 +213,9 @@ class MeshRenderer:
     """
 
     def __init__(self, mesh: SceneMesh, device: str = "cpu", shadows: bool = True):
-        from warpnerf.device import init_warp
-
         wp = init_warp()
-        from warpnerf.kernels import raytrace
-        from warpnerf.ops.launch import load_here
+        from warpnerf.kernels import raytrace  # lazy: imports Warp, which only generating a scene needs
+        from warpnerf.ops.launch import load_here  # lazy: warpnerf.ops stays out of --help
 
         self._wp, self._kernel, self.device, self.shadows = wp, raytrace.render_mesh, device, shadows
         load_here(self._kernel, device)  # before the worker threads launch it
@@ -239,8 +243,7 @@ class MeshRenderer:
         ``c2w`` is (N, 3, 4) OpenGL; the principal point is the image centre. On CPU the views
         are split over the worker threads (each launch runs on one thread).
         """
-        from warpnerf.device import num_threads, run_chunks, split_range
-        from warpnerf.ops.launch import launch
+        from warpnerf.ops.launch import launch  # lazy: warpnerf.ops stays out of --help
 
         wp = self._wp
         c2w = np.asarray(c2w, np.float32).reshape(-1, 3, 4)
@@ -391,10 +394,7 @@ def generate_builtin(name: str, out_dir: str, resolution: int | None = None, cou
     if name in FORWARD_FACING:
         generate_forward_facing(name, out_dir, resolution, counts[0], progress)
         return
-    from PIL import Image
-    from tqdm import tqdm
-
-    from warpnerf.data.images import load_parallel
+    from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
 
     t0 = time.time()
     if name in UNBOUNDED:
@@ -468,10 +468,7 @@ def generate_forward_facing(name: str, out_dir: str, width: int = FF_RESOLUTION,
     ``images/000.png ...`` (RGB, every pixel covered) and ``poses_bounds.npy`` ((N, 17): the LLFF
     [down, right, back | centre | height, width, focal] matrix and the 0.1 / 99.9 percentiles of
     the view's depth, :data:`FF_PERCENTILES`)."""
-    from PIL import Image
-    from tqdm import tqdm
-
-    from warpnerf.data.images import load_parallel
+    from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
 
     t0 = time.time()
     height = max(int(round(width * 0.75)), 1)
@@ -525,20 +522,14 @@ def load_builtin(
             Forward-facing scenes: (views,), default (FF_VIEWS,).
         progress: show a tqdm bar while generating.
     """
-    from warpnerf.data.blender import load_blender
-
     folder = ensure_builtin(name, resolution, cache_dir, counts, progress)
     if name in FORWARD_FACING:
-        from warpnerf.data.llff import load_llff
-
         scene = load_llff(folder, factor=1, downscale=downscale, name=name)
         scene.source = "builtin"
         return scene
     scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
     scene.source = "builtin"
     if name in UNBOUNDED:
-        from warpnerf.geometry.rayspace import RaySpace
-
         scene.kind = "unbounded"
         scene.ray_space = RaySpace.contracted(GARDEN_NEAR, scale=GARDEN_SCALE)
     return scene
@@ -579,9 +570,7 @@ def export_builtin(
     if name in FORWARD_FACING:
         raise DatasetError(f"built-in scene '{name}' is already a capture in the LLFF layout: "
                            f"{ensure_builtin(name, resolution, cache_dir, counts, progress)}")
-    from PIL import Image
-
-    from warpnerf.data.blender import read_depth, read_transforms
+    from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
 
     src = ensure_builtin(name, resolution, cache_dir, counts, progress)
     img_dir = os.path.join(out_dir, "images")
@@ -617,7 +606,7 @@ def export_builtin(
             json.dump(meta, f, indent=1)
         return out_dir
 
-    from warpnerf.data import colmap as cm
+    from warpnerf.data import colmap as cm  # lazy: the COLMAP reader stays out of --help
 
     rng = np.random.default_rng(0)
     cameras = {1: cm.Camera(1, "SIMPLE_PINHOLE", width, height, np.array([focal, cx, cy]))}
@@ -656,8 +645,6 @@ class GardenRenderer:
     """
 
     def __init__(self):
-        from warpnerf.data.builtin_meshes import garden_environment, garden_mesh
-
         self.fg = MeshRenderer(garden_mesh())
         self.env = MeshRenderer(garden_environment(), shadows=False)
 

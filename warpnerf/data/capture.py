@@ -17,8 +17,8 @@ from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_p
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.images import area_downscale, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
-from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.data.scene import Scene, Views
+from warpnerf.geometry.rayspace import RaySpace
 
 
 @dataclass

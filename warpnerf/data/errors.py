@@ -1,5 +1,10 @@
 """The one exception type of the data layer."""
 
+import json
+import os
+
+import numpy as np
+
 
 class DatasetError(ValueError):
     """A scene cannot be found, read or generated.
@@ -16,8 +21,6 @@ def check_c2w(m, where: str, tol: float = 1e-3) -> None:
     A NaN pose is not just one bad view: LLFF recentring spreads it to every pose and the marcher
     then walks an infinite ray, so it has to be stopped here, before anything is written.
     """
-    import numpy as np
-
     a = np.asarray(m, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise DatasetError(f"{where} has non-finite values (NaN or inf)")
@@ -33,9 +36,6 @@ def check_c2w(m, where: str, tol: float = 1e-3) -> None:
 def read_json_object(path: str, missing: str = "") -> dict:
     """The JSON object in ``path``; DatasetError naming the file when it is missing, unreadable,
     malformed or not an object (``missing``: what to add to the missing-file message)."""
-    import json
-    import os
-
     if not os.path.isfile(path):
         raise DatasetError(f"missing {path}{missing}")
     try:
@@ -53,8 +53,6 @@ def read_json_object(path: str, missing: str = "") -> dict:
 def check_frames(path: str, frames, empty: str = "") -> None:
     """Check a transforms file's ``frames``: a non-empty list whose entries have ``file_path`` and a
     finite, rotation-valued 4x4 (or 3x4) ``transform_matrix`` (``empty``: added to that message)."""
-    import numpy as np
-
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{path}: missing or empty key 'frames'{empty}")
     for i, fr in enumerate(frames):

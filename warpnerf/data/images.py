@@ -23,14 +23,14 @@ def read_image(path: str) -> np.ndarray:
     try:
         if path.lower().endswith((".png", ".jpg", ".jpeg")):
             # Pillow directly: imageio's plugin dispatch costs ~30 % on small PNGs.
-            from PIL import Image
+            from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
 
             with Image.open(path) as im:
                 if im.mode not in ("L", "LA", "RGB", "RGBA", "I;16"):
                     im = im.convert("RGBA")  # palette, 1-bit, CMYK...: asarray would return raw codes
                 img = np.asarray(im)
         else:
-            import imageio.v3 as iio
+            import imageio.v3 as iio  # lazy: codecs stay out of --help (~0.08 s)
 
             img = iio.imread(path)
     except Exception as exc:  # decoders raise many types; the user needs the file name, not the type

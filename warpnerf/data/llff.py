@@ -30,8 +30,8 @@ import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
-from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 from warpnerf.data.scene import Scene, Views
+from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 
 LLFF_BD_FACTOR = 0.75
 

@@ -23,6 +23,8 @@ import subprocess
 import sys
 import time
 
+from tqdm.auto import tqdm
+
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.images import IMAGE_SUFFIXES
 
@@ -41,7 +43,7 @@ def list_images(folder: str) -> list[str]:
 def backend() -> str:
     """"pycolmap", "colmap" (the program) or raise DatasetError saying how to get one."""
     try:
-        import pycolmap  # noqa: F401
+        import pycolmap  # noqa: F401  # optional extra: warpnerf[colmap]
 
         return "pycolmap"
     except ImportError:
@@ -78,8 +80,6 @@ def process_images(
 
     Returns {"images": N, "registered": M, "points": P, "seconds": t, "backend": name}.
     """
-    from tqdm.auto import tqdm
-
     if camera_model not in CAMERA_MODELS:
         raise DatasetError(f"--camera-model {camera_model} is not one warpnerf loads ({', '.join(CAMERA_MODELS)})")
     if matcher not in ("exhaustive", "sequential"):
@@ -129,7 +129,7 @@ def process_images(
 
 def _run_pycolmap(img_dir, db, models, names, camera_model, camera_params, single_camera, matcher, max_image_size,
                   threads, seed, bar):
-    import pycolmap
+    import pycolmap  # optional extra: warpnerf[colmap]
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -186,7 +186,7 @@ def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, s
     bar.update(1)
     run("mapper", "--database_path", db, "--image_path", img_dir, "--output_path", models)
     bar.update(bar.total - bar.n)
-    from warpnerf.data.colmap import read_model
+    from warpnerf.data.colmap import read_model  # lazy: the COLMAP reader stays out of --help
 
     best, best_n, best_pts = None, 0, 0
     for sub in sorted(os.listdir(models)):

@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import os
 
+from warpnerf.data.blender import load_blender
+from warpnerf.data.builtin import FORWARD_FACING, GENERATOR_VERSION, builtin_scenes, cache_root, load_builtin
 from warpnerf.data.errors import DatasetError
+from warpnerf.data.llff import load_llff
 from warpnerf.data.scene import Scene
 
 DATA_ENV = "WARPNERF_DATA"
@@ -46,7 +49,7 @@ def scene_layout(folder: str) -> str | None:
         return "llff"
     if os.path.isfile(os.path.join(folder, "transforms.json")):
         return "transforms"
-    from warpnerf.data.colmap import find_sparse
+    from warpnerf.data.colmap import find_sparse  # lazy: the COLMAP reader stays out of --help
 
     if find_sparse(folder):
         return "colmap"
@@ -88,8 +91,6 @@ def is_forward_facing(name: str, data_root: str | None = None) -> bool:
     """Whether scene ``name`` resolves (as :func:`load_scene` would) to a forward-facing scene, one
     trained in LLFF's NDC ray space: a dataset scene in the LLFF layout or a built-in forward-facing
     one. Looks at file names only; an unusable data root counts as none (loading reports it)."""
-    from warpnerf.data.builtin import FORWARD_FACING
-
     try:
         root = data_root_from(data_root)
     except DatasetError:
@@ -102,8 +103,6 @@ def is_forward_facing(name: str, data_root: str | None = None) -> bool:
 
 def list_scenes(data_root: str | None = None) -> tuple[list[str], list[str]]:
     """(built-in scene names, dataset scene names under the data root)."""
-    from warpnerf.data.builtin import builtin_scenes
-
     return list(builtin_scenes()), sorted(dataset_scenes(data_root_from(data_root)))
 
 
@@ -139,29 +138,23 @@ def load_scene(
     Raises:
         DatasetError: unknown name (the message lists what exists) or any loader error.
     """
-    from warpnerf.data.builtin import builtin_scenes, load_builtin
-
     root = data_root_from(data_root)
     hit = find_dataset(name, root)
     if hit:
         folder, layout = hit
         if layout == "blender":
-            from warpnerf.data.blender import load_blender
-
             return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
                                 allow_rgb=allow_rgb)
         if layout == "transforms":
-            from warpnerf.data.transforms_json import load_transforms_json
+            from warpnerf.data.transforms_json import load_transforms_json  # lazy: stays out of --help (it brings the COLMAP reader)
 
             return load_transforms_json(folder, downscale=downscale, holdout=llff_holdout,
                                         white_background=white_background, name=name, unbounded=unbounded)
         if layout == "colmap":
-            from warpnerf.data.colmap import load_colmap
+            from warpnerf.data.colmap import load_colmap  # lazy: the COLMAP reader stays out of --help
 
             return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
                                name=name, unbounded=unbounded)
-        from warpnerf.data.llff import load_llff
-
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)
     if name in builtin_scenes():
         return load_builtin(
@@ -184,8 +177,6 @@ def load_scene(
 
 def describe_scenes(data_root: str | None = None, cache_dir: str | None = None) -> str:
     """Text for ``warpnerf scenes``: built-in scenes (with cached resolutions) and dataset scenes."""
-    from warpnerf.data.builtin import GENERATOR_VERSION, builtin_scenes, cache_root
-
     cache = cache_root(cache_dir)
     try:
         cached_entries = os.listdir(cache)

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 
 import torch
 
+from warpnerf.geometry.contraction import contract, uncontract
+
 KINDS = ("euclidean", "ndc", "contracted")
 NDC_AABB = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
 CONTRACTED_AABB = (-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)
@@ -141,8 +143,6 @@ class RaySpace:
         the contraction for the contracted kind, else the identity (the same tensor). Differentiable."""
         if self.kind != "contracted":
             return x
-        from warpnerf.geometry.contraction import contract
-
         return contract(x)
 
     def to_world(self, x: torch.Tensor) -> torch.Tensor:
@@ -151,8 +151,6 @@ class RaySpace:
         if self.kind == "euclidean":
             return x
         if self.kind == "contracted":
-            from warpnerf.geometry.contraction import uncontract
-
             return uncontract(x) / self.scale + x.new_tensor(self.center)
         return world_from_ndc(x, self.focal, self.width, self.height, self.ndc_near)
 

@@ -19,10 +19,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # annotations only: torch itself loads when a tensor is asked for (see g2fr_weights)
+    import torch
 
-from warpnerf.train.config import G2FR_BETA
+# G²fR beta: levels are switched on over the first beta * T steps (paper eq. 15). The paper gives
+# no value; 0.5 is what the few-shot and pose presets were tuned with. This is the one default:
+# TrainConfig, G2fRSchedule and the spectrum experiments all read it from here.
+G2FR_BETA = 0.5
 
 # the level ramps this module implements; the config's choices and checks read this registry
 MASK_MODES = ("cosine", "binary")
@@ -55,6 +60,8 @@ def g2fr_level_weight(level: int, tau: float, mode: str = "cosine") -> float:
 
 def g2fr_weights(step: int, total_steps: int, n_levels: int, beta: float, mode: str = "cosine") -> torch.Tensor:
     """Per-level weights (n_levels,) float32 at iteration ``step`` of ``total_steps``."""
+    import torch  # lazy: the config imports this module for G2FR_BETA, and 'import warpnerf.cli' stays torch-free
+
     tau = g2fr_tau(step, total_steps, n_levels, beta)
     return torch.tensor([g2fr_level_weight(i + 1, tau, mode) for i in range(n_levels)], dtype=torch.float32)
 
@@ -102,9 +109,12 @@ class LevelWeights:
     def to(self, *args, **kwargs) -> "LevelWeights":
         return self
 
-    def as_tensor(self, device=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """(L,) tensor of the weights (a host-to-device copy when ``device`` is a GPU)."""
-        return torch.tensor(self.values, dtype=dtype, device=device)
+    def as_tensor(self, device=None, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """(L,) tensor of the weights, float32 unless ``dtype`` says otherwise (a host-to-device copy
+        when ``device`` is a GPU)."""
+        import torch  # lazy: see g2fr_weights
+
+        return torch.tensor(self.values, dtype=torch.float32 if dtype is None else dtype, device=device)
 
 
 class G2fRSchedule:

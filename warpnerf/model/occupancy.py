@@ -107,6 +107,7 @@ class OccupancyGrid:
             generator: torch generator (any device) for reproducible cell picks and jitter.
         """
         wp = init_warp()
+        # lazy: Warp loads with the first update, not with the grid's module
         from warpnerf.kernels.occupancy import occupancy_bitfield, occupancy_ema, occupancy_sample_points, occupancy_scatter_max
 
         lo, hi = self.aabb[:3], self.aabb[3:]

@@ -104,7 +104,7 @@ def active_sample_counts(
     counts = torch.zeros(num_rays, dtype=torch.int32, device=sigmas.device)
     if num_rays:
         wp = init_warp()
-        from warpnerf.kernels.composite import composite_active_counts
+        from warpnerf.kernels.composite import composite_active_counts  # lazy: Warp loads with the first launch, not with the op's module
 
         sigmas, t_starts, t_ends = (t.detach().contiguous() for t in (sigmas, t_starts, t_ends))
         inputs = [as_warp(sigmas), as_warp(t_starts), as_warp(t_ends), as_warp(ray_offsets.contiguous()),
@@ -190,7 +190,7 @@ class _CompositeRays(torch.autograd.Function):
         weights = sigmas.new_zeros(sigmas.shape[0])
         if num_rays:
             wp = init_warp()
-            from warpnerf.kernels.composite import composite_rays_fwd
+            from warpnerf.kernels.composite import composite_rays_fwd  # lazy: Warp loads with the first launch, not with the op's module
 
             inputs = _launch_inputs(
                 wp, sigmas, rgbs, t_starts, t_ends, ray_offsets, ray_counts, bg_tensor, bg_const, eps
@@ -210,7 +210,7 @@ class _CompositeRays(torch.autograd.Function):
         num_rays = ray_offsets.shape[0]
         if num_rays:
             wp = init_warp()
-            from warpnerf.kernels.composite import composite_rays_bwd
+            from warpnerf.kernels.composite import composite_rays_bwd  # lazy: Warp loads with the first launch, not with the op's module
 
             inputs = _launch_inputs(
                 wp, sigmas, rgbs, t_starts, t_ends, ray_offsets, ray_counts, bg_tensor, ctx.bg_const, ctx.eps

@@ -179,7 +179,7 @@ class _Launcher(GridLauncher):
 
     @staticmethod
     def make_kernels(spec: CPGridSpec, wp_dtype):
-        from warpnerf.kernels.cpgrid import make_cpgrid_kernels
+        from warpnerf.kernels.cpgrid import make_cpgrid_kernels  # lazy: Warp loads with the first launch, not with the op's module
 
         return make_cpgrid_kernels(spec.rank, wp_dtype)
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 
 from warpnerf.device import init_warp
-from warpnerf.ops.hashgrid_spec import HashGridSpec
+from warpnerf.ops.hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES, HashGridSpec
 from warpnerf.ops.launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
@@ -66,8 +66,6 @@ def _check_inputs(x, table, spec, level_weights) -> tuple[float, ...]:
 def kernel_variant_specs():
     """One small spec per kernel variant the op can generate (every D and F it accepts), for
     :func:`warpnerf.ops.registry.kernel_modules`; the dtype is the other variant axis."""
-    from warpnerf.ops.hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES
-
     for dim in SUPPORTED_DIMS:
         for features in SUPPORTED_FEATURES:
             yield f"dim={dim} F={features}", HashGridSpec.create(dim, 1, features, 4, 2, 2)
@@ -80,7 +78,7 @@ class _Launcher(GridLauncher):
 
     @staticmethod
     def make_kernels(spec: HashGridSpec, wp_dtype):
-        from warpnerf.kernels.hashgrid import make_hashgrid_kernels
+        from warpnerf.kernels.hashgrid import make_hashgrid_kernels  # lazy: Warp loads with the first launch, not with the op's module
 
         return make_hashgrid_kernels(spec.dim, spec.n_features, wp_dtype)
 

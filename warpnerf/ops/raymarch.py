@@ -148,7 +148,7 @@ def march_rays_within_budget(
         return PackedSamples(counts.clone(), empty_f, empty_f.clone(), counts.clone(), counts), 0
 
     wp = init_warp()
-    from warpnerf.kernels import raymarch as kernels
+    from warpnerf.kernels import raymarch as kernels  # lazy: Warp loads with the first launch, not with the op's module
 
     kernel = kernels.march_rays_contracted if contract else kernels.march_rays
     grid_scale = [res / (h - l) for l, h in zip(lo, hi)]
@@ -299,7 +299,7 @@ def march_rays_window(
         res, occupied_blocks = 1, None
         occ_bitfield = torch.ones(1, dtype=torch.uint8, device=device)
     wp = init_warp()
-    from warpnerf.kernels import raymarch as kernels
+    from warpnerf.kernels import raymarch as kernels  # lazy: Warp loads with the first launch, not with the op's module
 
     inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract),
               wp.vec3(*lo), wp.vec3(*hi), wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)]),

@@ -17,9 +17,12 @@ Building the list imports Warp and defines the kernels (cheap: no compilation ha
 from __future__ import annotations
 
 import importlib
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from warpnerf.device import init_warp
+from warpnerf.ops import cpgrid, hashgrid
 
 __all__ = ["KernelModule", "STATIC_KERNEL_MODULES", "GRID_DTYPE_NAMES", "kernel_modules"]
 
@@ -56,8 +59,6 @@ class KernelModule:
 def kernel_modules() -> list[KernelModule]:
     """All Warp modules of the package, grid variants first; see the module docstring."""
     wp = init_warp()
-    from warpnerf.ops import cpgrid, hashgrid
-
     out: list[KernelModule] = []
     for op, grid in (("hashgrid", hashgrid), ("cpgrid", cpgrid)):
         for dtype_name in GRID_DTYPE_NAMES:
@@ -78,7 +79,7 @@ WANTED_ARCHS = (70, 80, 90)
 def nvrtc_archs() -> list[int]:
     """Architectures this Warp build's NVRTC can compile for (empty without NVRTC)."""
     init_warp()
-    from warp._src.context import runtime  # no public accessor in Warp 1.19
+    from warp._src.context import runtime  # lazy (Warp); no public accessor in Warp 1.19
 
     return sorted(getattr(runtime, "nvrtc_supported_archs", None) or [])
 
@@ -97,16 +98,12 @@ def target_archs(wanted=WANTED_ARCHS) -> list[int]:
 
 def aot_cache_dir() -> str:
     """Folder of ahead-of-time PTX: ``$WARPNERF_AOT_CACHE`` or ``<Warp kernel cache>/aot``."""
-    import os
-
     wp = init_warp()
     return os.environ.get("WARPNERF_AOT_CACHE") or os.path.join(wp.config.kernel_cache_dir, "aot")
 
 
 def aot_compiled(km: KernelModule, arch: int, cache: str | None = None) -> bool:
     """Whether ``km`` has PTX for ``arch`` in the AOT cache (for its current source hash)."""
-    import os
-
     folder = os.path.join(cache or aot_cache_dir(), km.module.name)
     ident = km.module.get_module_identifier()
     return os.path.isdir(folder) and any(f.startswith(ident) and f.endswith(f".sm{arch}.ptx") for f in os.listdir(folder))
@@ -116,9 +113,6 @@ def compile_aot(modules: list[KernelModule], archs: list[int], cache: str | None
     """Compile every module for every arch to PTX (skipped when the cache already has it).
 
     Returns one line per failure, naming the op variant, its kernels and the arch. No GPU needed."""
-    from concurrent.futures import ThreadPoolExecutor
-    import os
-
     wp = init_warp()
     cache = cache or aot_cache_dir()
 

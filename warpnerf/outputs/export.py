@@ -15,11 +15,13 @@ Files are binary PLY written with ``plyfile`` (vertex x, y, z, red, green, blue;
 
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np
 import torch
+
+from warpnerf.model.renderer import pixel_rays
+from warpnerf.train.views import training_cameras
 
 # Iso-level of the exported surface, density per scene unit (1 - exp(-10 * 0.01) = 10 % of the light
 # is blocked by 1/100 scene unit of it). Measured on the built-in chair after 150 steps: of the levels
@@ -83,7 +85,7 @@ def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRE
         raise ExportError(f"mesh export needs a field in world coordinates (this scene's field lives in its "
                           f"{trainer.scene.ray_space.kind} ray space); use --what points")
     try:
-        from skimage import measure
+        from skimage import measure  # optional extra: warpnerf[export]
     except ImportError:
         raise ExportError("mesh export needs scikit-image: pip install 'warpnerf[export]'") from None
     sigma, lo, spacing = density_grid(trainer, resolution)
@@ -108,14 +110,10 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
 
     Returns points (P, 3) float32 in world units and colours (P, 3) uint8; at most
     ``max_points`` (a seeded random subset)."""
-    from warpnerf.model.renderer import pixel_rays
-
     views = trainer.views
     h, w = max(int(round(views.height * scale)), 1), max(int(round(views.width * scale)), 1)
     sx, sy = w / views.width, h / views.height
     focal, cx, cy = views.focal * sx, views.cx * sx, views.cy * sy
-    from warpnerf.runs.video import training_cameras
-
     c2ws = training_cameras(trainer)
     if 0 < max_views < len(c2ws):
         c2ws = c2ws[torch.linspace(0, len(c2ws) - 1, max_views).round().long()]
@@ -147,7 +145,7 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
 def write_ply(path: str, verts: np.ndarray, colors: np.ndarray, faces: Optional[np.ndarray] = None) -> None:
     """Binary PLY: vertices (V, 3) float, colours (V, 3) uint8, optional triangle faces (F, 3)."""
     try:
-        from plyfile import PlyData, PlyElement
+        from plyfile import PlyData, PlyElement  # optional extra: warpnerf[export]
     except ImportError:
         raise ExportError("writing PLY needs plyfile: pip install 'warpnerf[export]'") from None
     v = np.empty(len(verts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
@@ -163,7 +161,7 @@ def write_ply(path: str, verts: np.ndarray, colors: np.ndarray, faces: Optional[
 
 def read_ply(path: str):
     """(verts (V, 3) float32, colors (V, 3) uint8, faces (F, 3) int32 or None) of a PLY file."""
-    from plyfile import PlyData
+    from plyfile import PlyData  # optional extra: warpnerf[export]
 
     ply = PlyData.read(path)
     v = ply["vertex"].data
@@ -193,6 +191,6 @@ def sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) 
 def chamfer_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Mean nearest-neighbour distances (a -> b, b -> a) between point sets (N, 3), (M, 3);
     the symmetric Chamfer distance is their mean (scene units)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # optional extra: warpnerf[export]
 
     return float(cKDTree(b).query(a)[0].mean()), float(cKDTree(a).query(b)[0].mean())

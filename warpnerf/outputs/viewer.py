@@ -22,6 +22,8 @@ import numpy as np
 import torch
 
 from warpnerf.runs.folder import CHECKPOINT, load_run, read_checkpoint
+from warpnerf.runs.video import look_target
+from warpnerf.train.views import test_cameras, training_cameras
 
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
 
@@ -109,8 +111,6 @@ class RunViewer:
 
     def look_at(self) -> np.ndarray:
         """(3,) the point the training cameras look at (forward-facing scenes: 1 unit ahead of the first test camera)."""
-        from warpnerf.runs.video import look_target, training_cameras
-
         if self.trainer.scene.ray_space.forward_facing:
             c = self.initial_camera()
             return (c[:, 3] - c[:, 2]).double().numpy()
@@ -118,8 +118,6 @@ class RunViewer:
 
     def initial_camera(self) -> torch.Tensor:
         """(3, 4) the first test camera (in the field's frame): where the browser starts."""
-        from warpnerf.runs.video import test_cameras
-
         return test_cameras(self.trainer)[0]
 
     @torch.no_grad()
@@ -144,7 +142,7 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
           stop: Optional[threading.Event] = None):
     """Serve ``viewer`` with viser until ``stop`` is set (or forever). Returns the server after stop."""
     try:
-        import viser
+        import viser  # optional extra: warpnerf[viewer]
     except ImportError:
         raise RuntimeError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
 

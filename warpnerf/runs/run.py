@@ -14,27 +14,31 @@ Run folder layout::
 from __future__ import annotations
 
 import os
+import shutil
+import signal
 import time
 from typing import Optional
 
 import torch
 
 from warpnerf import device as devmod
+from warpnerf.runs import video
 from warpnerf.runs.folder import (CHECKPOINT, RESULT_NEUTRAL_KEYS, config_hash, folder_state, load_scene_for,
                                   read_checkpoint, read_metrics, read_run_config, write_config)
+from warpnerf.train import plots
+from warpnerf.train.checkpoint import _fault, save_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
 from warpnerf.train.evaluate import evaluate, write_json
+from warpnerf.train.metrics import configure_lpips
+from warpnerf.train.monitor import Monitor
 from warpnerf.train.tasks import make_task
-from warpnerf.train.trainer import Trainer, TrainingError
+from warpnerf.train.trainer import Trainer, TrainingError, peak_rss_mb, start_memory_window
 
 
 def _configure_lpips(cfg: TrainConfig) -> None:
     """Pick the LPIPS weights evaluation uses (``--lpips-weights``; unusable path: one-line error)."""
-    from warpnerf.train import metrics
-    from warpnerf.train.config import ConfigError
-
     try:
-        metrics.configure_lpips(cfg.lpips_weights)
+        configure_lpips(cfg.lpips_weights)
     except ValueError as e:
         raise ConfigError(str(e)) from None
 
@@ -100,11 +104,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     the first file is written. With ``cfg.save_every`` (and ``cfg.checkpoint_every``) a checkpoint is
     saved atomically every that many steps; SIGINT/SIGTERM save one at the next step boundary and
     raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
-    import shutil
-    import signal
-
-    from warpnerf.train.checkpoint import _fault, save_checkpoint
-
     try:
         if cfg.threads is not None:
             devmod.limit_cpu_threads(cfg.threads)
@@ -113,8 +112,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         raise ConfigError(str(e)) from None
     _configure_lpips(cfg)
     mode = prepare_run(cfg, overwrite, resume, force)
-    from warpnerf.train.trainer import start_memory_window
-
     start_memory_window()  # this run's peak memory, not that of earlier runs in this process
     out_dir = cfg.run_dir()
     if mode == "finished":
@@ -177,8 +174,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
             signal.signal(s, on_signal)
     except ValueError:  # not the main thread: no signal handling
         handlers = {}
-    from warpnerf.train.monitor import Monitor
-
     monitor = Monitor(trainer)
     trainer.callbacks.append(monitor)
     try:
@@ -220,9 +215,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         **task.metrics(trainer),
     }
     write_json(os.path.join(out_dir, "history.json"), trainer.history)
-    from warpnerf.runs import video
-    from warpnerf.train import plots
-
     plots.plot_training_curves(os.path.join(out_dir, "training.png"),
                                {"step": trainer.history["step"], "training batch loss (MSE)": trainer.history["loss"],
                                 "training batch PSNR (dB)": trainer.history["psnr"],
@@ -232,8 +224,6 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     task.artifacts(trainer, out_dir)
     if cfg.video_frames > 0:
         video.render_run_video(trainer, out_dir, cfg.video_frames, progress)  # turntable.mp4 (.gif without ffmpeg)
-    from warpnerf.train.trainer import peak_rss_mb
-
     metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
     metrics["total_seconds"] = time.perf_counter() - t_start
     metrics["config_hash"] = config_hash(cfg)

@@ -31,10 +31,15 @@ import math
 import os
 import warnings
 from dataclasses import dataclass
-from typing import Optional
 
+import imageio.v2 as imageio
 import numpy as np
 import torch
+from tqdm.auto import tqdm
+
+from warpnerf.geometry.cameras import look_at
+from warpnerf.train.evaluate import depth_to_rgb
+from warpnerf.train.views import test_cameras, training_cameras
 
 PATHS = ("orbit", "spiral", "test")
 
@@ -80,8 +85,6 @@ def look_target(c2w: torch.Tensor) -> torch.Tensor:
 
 
 def _look_at(eyes: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    from warpnerf.geometry.cameras import look_at
-
     return look_at(eyes.double(), target=tuple(target.tolist()), up=tuple(up.tolist())).float()
 
 
@@ -191,25 +194,6 @@ def write_camera_path_json(path: str, cams: CameraPath, fps: float = 24.0) -> No
 # ---- paths of a trained run ------------------------------------------------------------------
 
 
-def training_cameras(trainer) -> torch.Tensor:
-    """(N, 3, 4) training cameras in the field's frame (the optimised ones for the pose task)."""
-    if hasattr(trainer.task, "current_c2w"):
-        with torch.no_grad():
-            return trainer.task.current_c2w().detach().cpu().float()
-    return trainer.train_c2w.detach().cpu().float()
-
-
-def test_cameras(trainer) -> torch.Tensor:
-    """(N, 3, 4) test cameras in the field's frame (pose task: mapped by the Sim(3) alignment)."""
-    c2w = trainer.scene.test.c2w
-    task = trainer.task
-    if hasattr(task, "current_c2w"):
-        from warpnerf.geometry.cameras import map_gt_poses_to_estimate_frame
-
-        c2w = map_gt_poses_to_estimate_frame(c2w.to(task.gt_c2w.device).double(), task.evaluate()["sim3"]).float()
-    return c2w.detach().cpu().float()
-
-
 # LLFF spiral focus depth (forward-facing scenes): 1 / ((1 - 0.75) / close + 0.75 / inf) with LLFF's
 # close = 0.9 * nearest bound = 0.9 / bd_factor = 1.2 and inf -> infinity (we do not keep the far bound)
 LLFF_FOCUS_DEPTH = 1.2 / 0.25
@@ -256,10 +240,6 @@ def make_path(trainer, kind: str, frames: int, scale: float = 1.0) -> CameraPath
 def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool = True) -> list[np.ndarray]:
     """Render every camera of ``cams``: a list of (H, W, 3) uint8 frames, or (H, 2W, 3) with the
     depth map (near = bright, background white) beside the RGB when ``depth``."""
-    from tqdm.auto import tqdm
-
-    from warpnerf.train.evaluate import depth_to_rgb
-
     weights = trainer.level_weights(trainer.cfg.iters)
     out = []
     for c2w in tqdm(cams.c2w, desc="render", disable=not progress, dynamic_ncols=True):
@@ -276,7 +256,7 @@ def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool
 def have_ffmpeg() -> bool:
     """True if imageio can write MP4 (``imageio-ffmpeg`` installed with its ffmpeg binary)."""
     try:
-        import imageio_ffmpeg
+        import imageio_ffmpeg  # optional extra: warpnerf[video]
 
         return os.path.isfile(imageio_ffmpeg.get_ffmpeg_exe())
     except Exception:
@@ -292,8 +272,6 @@ def _pad_even(frame: np.ndarray) -> np.ndarray:
 def write_video(path: str, frames: list[np.ndarray], fps: float = 24.0) -> str:
     """Write uint8 (H, W, 3) frames to ``path``: MP4 (H.264) when ffmpeg is available, else a GIF
     with the same stem (a warning says so). ``.gif`` paths are always GIFs. Returns the path written."""
-    import imageio.v2 as imageio
-
     if not frames:
         raise PathError("no frames to write")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -329,8 +307,6 @@ def render_run_video(trainer, out_dir: str, frames: int, progress: bool = True) 
 
 def read_video(path: str) -> list[np.ndarray]:
     """Decode every frame of a video or GIF: a list of (H, W, 3) uint8 arrays."""
-    import imageio.v2 as imageio
-
     reader = imageio.get_reader(path)
     try:
         return [np.asarray(f)[..., :3] for f in reader]

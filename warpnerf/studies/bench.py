@@ -11,6 +11,7 @@ for the field's MLPs, and the fraction of each that the op reaches.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import statistics
 import time
@@ -20,6 +21,22 @@ import torch
 
 from warpnerf import device as devmod
 from warpnerf import openmp
+from warpnerf.kernels import roofline as roofline_kernels
+from warpnerf.kernels.roofline import GATHERS_PER_THREAD
+from warpnerf.model import encoders, renderer
+from warpnerf.model.encoders import HashGridEncoder
+from warpnerf.ops.cpgrid import CPGridSpec, cpgrid_encode, init_cp_lines
+from warpnerf.ops.hashgrid import HashGridSpec, hashgrid_encode
+from warpnerf.ops.launch import as_warp, launch, load_here
+from warpnerf.ops.reference import composite as twin_composite
+from warpnerf.ops.reference import cpgrid as twin_cpgrid
+from warpnerf.ops.reference import hashgrid as twin_hashgrid
+from warpnerf.ops.reference import raymarch as twin_raymarch
+from warpnerf.runs.folder import load_run, load_scene_for
+from warpnerf.train.config import build_config
+from warpnerf.train.metrics import psnr
+from warpnerf.train.tasks import make_task
+from warpnerf.train.trainer import Trainer
 
 
 def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -69,9 +86,7 @@ GEMM_SHAPE = (65536, 64, 64)
 @functools.lru_cache(maxsize=None)
 def _gather_kernel(wp_device: str):
     """The probe kernel, compiled/loaded on the calling thread (never by two chunk threads at once)."""
-    from warpnerf.kernels.roofline import gather_sum as kernel
-    from warpnerf.ops.launch import load_here
-
+    kernel = roofline_kernels.gather_sum
     load_here(kernel, wp_device)
     return kernel
 
@@ -83,9 +98,6 @@ def gather_sum(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     ``num_threads()`` chunks on CPU (:func:`~warpnerf.device.run_chunks`), one launch on CUDA.
     Row ids must lie in [0, T) (not checked: a probe, not an op).
     """
-    from warpnerf.kernels.roofline import GATHERS_PER_THREAD
-    from warpnerf.ops.launch import as_warp, launch
-
     if table.dtype != torch.float32 or table.dim() != 2 or table.shape[1] != 2:
         raise ValueError(f"gather_sum: table must be (T, 2) float32, got {tuple(table.shape)} {table.dtype}")
     if rows.dtype != torch.int32 or rows.dim() != 2 or rows.shape[1] != GATHERS_PER_THREAD:
@@ -112,8 +124,6 @@ def gather_rate(table_rows: int, n: int = 262144, repeats: int = 5, device: torc
     The rows are random over the whole table, so a grid encoding, whose coarse levels are dense
     and cache-resident and whose level-major launches stay in one level's slice, can exceed it.
     """
-    from warpnerf.kernels.roofline import GATHERS_PER_THREAD
-
     dev = torch.device(device)
     gen = torch.Generator().manual_seed(seed)
     table = torch.rand(table_rows, 2, generator=gen).to(dev)
@@ -197,16 +207,11 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
     tdev = devmod.torch_device(wp_device)
     gen = torch.Generator().manual_seed(seed)
     if model == "ngp":
-        from warpnerf.model.encoders import HashGridEncoder
-        from warpnerf.ops.hashgrid import HashGridSpec, hashgrid_encode as encode_op
-        from warpnerf.ops.reference.hashgrid import hashgrid_encode as twin_op
-
+        encode_op, twin_op = hashgrid_encode, twin_hashgrid.hashgrid_encode
         spec = HashGridSpec.create(dim=3, n_levels=levels, n_features=features, log2_table_size=log2_table_size)
         table = HashGridEncoder(spec, generator=gen).table.data.to(tdev).requires_grad_()
     elif model == "mtrf":
-        from warpnerf.ops.cpgrid import CPGridSpec, cpgrid_encode as encode_op, init_cp_lines
-        from warpnerf.ops.reference.cpgrid import cpgrid_encode as twin_op
-
+        encode_op, twin_op = cpgrid_encode, twin_cpgrid.cpgrid_encode
         spec = CPGridSpec.create(n_levels=levels, rank=cp_rank)
         table = init_cp_lines(spec, generator=gen).to(tdev).requires_grad_()
     else:
@@ -265,8 +270,6 @@ def bench_encoding(n: int = 262144, levels: int = 16, features: int = 2, log2_ta
     alloc_s = median_seconds(alloc, repeats)
     roof = None
     if roofline and model == "ngp":
-        from warpnerf.kernels.roofline import GATHERS_PER_THREAD
-
         table_rows = levels << log2_table_size
         # as many threads as the forward's (point, level) pairs, so launch overheads weigh the same
         points = min(n * levels, _GATHER_POINTS_MAX)
@@ -325,13 +328,6 @@ def format_encoding(res: dict) -> str:
 
 def _twin_ops():
     """Context manager that swaps every Warp op used by a training step for its torch twin."""
-    import contextlib
-
-    from warpnerf.model import encoders, renderer
-    from warpnerf.ops.reference import composite as twin_composite
-    from warpnerf.ops.reference import hashgrid as twin_hashgrid
-    from warpnerf.ops.reference import raymarch as twin_raymarch
-
     @contextlib.contextmanager
     def swap():
         saved = (encoders.hashgrid_encode, renderer.march_rays_within_budget, renderer.composite_rays)
@@ -366,11 +362,6 @@ def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", 
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     torch_repeats = repeats if torch_repeats is None else torch_repeats
-    from warpnerf.train.config import build_config
-    from warpnerf.runs.folder import load_scene_for
-    from warpnerf.train.tasks import make_task
-    from warpnerf.train.trainer import Trainer
-
     scene_name = "lego" if data_root else "chair"
     cfg = build_config("full", overrides=dict(scene=scene_name, data_root=data_root, iters=warmup_steps + 1000,
                                               device=device))
@@ -456,9 +447,6 @@ def bench_render(run_dir: str, views: int = 5, device: str = "auto", every_sampl
     compilation, caches); reports the median, min and max seconds and the samples evaluated per
     pixel. ``every_sample`` renders with early ray termination off (``stop_transmittance`` = 0:
     every marched sample evaluated), the reference the rounds are measured against."""
-    from warpnerf.train.metrics import psnr
-    from warpnerf.runs.folder import load_run
-
     if views < 1:
         raise ValueError(f"views must be >= 1, got {views}")
     trainer = load_run(run_dir, device=device, progress=progress)

@@ -32,9 +32,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from warpnerf.train.config import G2FR_BETA
-from warpnerf.model.g2fr import G2fRSchedule
 from warpnerf.model.encoders import HashGridEncoder, PositionalEncoder
+from warpnerf.model.g2fr import G2FR_BETA, G2fRSchedule
 from warpnerf.ops.hashgrid_spec import HashGridSpec
 
 __all__ = [

@@ -2,8 +2,8 @@
 
 A spec names scenes, models, tasks, arms (G²fR on/off), seeds and config overrides; it expands
 into one run per combination, each its own run folder ``<out>/<scene>_<task>_<model>_<arm>_s<seed>``
-built by ``config.build_config`` and trained by ``run.run_training``. The results are collected
-into ``<out>/table.md`` (Tab. 1/Tab. 3 shaped, the paper's numbers beside ours, see ``table.py``),
+built by ``train.config.build_config`` and trained by ``runs.run.run_training``. The results are collected
+into ``<out>/table.md`` (Tab. 1/Tab. 3 shaped, the paper's numbers beside ours, see ``tables.py``),
 pose-error plots, and ``<out>/sweep.json`` (status, error and attempts of every run).
 
 Backends:
@@ -14,7 +14,7 @@ Backends:
   is streamed to the driver by Ray, results come back to the driver. ``pip install 'warpnerf[cluster]'``.
 
 Restartable: a run whose folder already holds a finished run of the identical configuration
-(``run.finished_metrics``) is skipped; a failing run is reported with a one-line error and
+(``runs.folder.finished_metrics``) is skipped; a failing run is reported with a one-line error and
 retried up to ``retries`` times; the others carry on.
 
 Spec format (TOML; paths relative to the current directory, like command-line flags)::
@@ -40,15 +40,24 @@ Spec format (TOML; paths relative to the current directory, like command-line fl
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
+import multiprocessing as mp
 import os
+import platform
 import sys
 import time
 import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from importlib import resources
 from typing import Any, Callable, Optional
 
+import torch
+from tqdm.auto import tqdm
+
+from warpnerf import device as devmod
+from warpnerf.studies.tables import write_tables
 from warpnerf.train.config import MODELS, ConfigError, TrainConfig, build_config, tomllib
 
 TASKS = ("full", "fewshot", "pose")
@@ -166,8 +175,6 @@ def load_spec(path: str) -> SweepSpec:
 
 def shipped_spec(name: str) -> Optional[str]:
     """Path of ``configs/sweeps/<name>.toml`` shipped with the package, or None."""
-    from importlib import resources
-
     stem = os.path.basename(name)
     stem = stem[:-5] if stem.endswith(".toml") else stem
     path = str(resources.files("warpnerf.configs").joinpath("sweeps", f"{stem}.toml"))
@@ -221,12 +228,8 @@ def _one_line(e: BaseException) -> str:
 
 def machine() -> str:
     """This machine in a few words: host, CPU cores, and the GPU torch sees if any."""
-    import platform
-
     text = f"{platform.node() or 'host'} ({os.cpu_count()} CPU cores"
     try:
-        import torch
-
         if torch.cuda.is_available():
             text += f", {torch.cuda.get_device_name(0)}"
     except Exception:  # pragma: no cover - torch is a core dependency
@@ -237,8 +240,8 @@ def machine() -> str:
 def _continue_or_replace(cfg: TrainConfig) -> dict:
     """Train ``cfg`` in its run folder: an unfinished run of the same configuration (a worker that
     crashed or was stopped) continues from its last checkpoint; anything else there is replaced."""
-    from warpnerf.runs.folder import config_hash, folder_state, read_run_config
-    from warpnerf.runs.run import run_training
+    from warpnerf.runs.folder import config_hash, folder_state, read_run_config  # lazy: see execute_run
+    from warpnerf.runs.run import run_training  # lazy: see execute_run
 
     if folder_state(cfg.run_dir()) == "unfinished":
         try:
@@ -259,15 +262,14 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
     not part of the configuration and a restart with another worker count still skips).
     ``log_path``: the run's output goes to this file (and to stdout as well with ``stream``).
     """
-    from warpnerf import device as devmod
-    from warpnerf.runs.run import run_training
+    # lazy: the command line imports this module to build its parser, and runs/ brings the whole trainer
+    # (~0.13 s on top of --help); a worker loads it here, before its output goes to the run's log
+    from warpnerf.runs.run import run_training  # noqa: F401
 
     result: dict = {"machine": machine()}
     log = None
     old_threads = None
     try:
-        import torch
-
         if threads:
             old_threads = (devmod.num_threads(), torch.get_num_threads())
             devmod.limit_cpu_threads(int(threads))
@@ -293,8 +295,6 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
         if log:
             log.close()
         if old_threads:
-            import torch
-
             devmod.set_num_threads(old_threads[0])
             torch.set_num_threads(old_threads[1])
     return result
@@ -336,8 +336,6 @@ class _Progress:
     """Live display of the sweep: a tqdm bar over runs with done / running / failed and ETA."""
 
     def __init__(self, total: int, skipped: int, enabled: bool):
-        from tqdm.auto import tqdm
-
         self.counts = {"done": skipped, "running": 0, "failed": 0}
         self.bar = tqdm(total=total, initial=skipped, desc="sweep", unit="run", disable=not enabled,
                         dynamic_ncols=True)
@@ -404,10 +402,6 @@ def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers:
                 if final:
                     break
         return
-    import multiprocessing as mp
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-    from concurrent.futures.process import BrokenProcessPool
-
     ctx = mp.get_context("spawn")
     queue = list(pending)
     running: dict = {}
@@ -451,7 +445,7 @@ def ray_missing_message() -> str:
 def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: Optional[str],
              progress: _Progress) -> None:
     """One Ray task per run with the spec's resources; output streamed by Ray, results gathered here."""
-    import ray
+    import ray  # optional extra: warpnerf[cluster]
 
     if not ray.is_initialized():
         ray.init(address=address, log_to_driver=True)
@@ -504,13 +498,13 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
         raise ConfigError(f"unknown backend '{backend}': expected local or ray")
     if backend == "ray":
         try:
-            import ray  # noqa: F401
+            import ray  # noqa: F401  # optional extra: warpnerf[cluster]
         except ImportError:
             raise SweepError(ray_missing_message()) from None
     retries = spec.retries if retries is None else retries
     if retries < 0:
         raise ConfigError(f"retries must be >= 0, got {retries}")
-    from warpnerf.runs.folder import finished_metrics
+    from warpnerf.runs.folder import finished_metrics  # lazy: see execute_run
 
     runs = expand(spec)
     results = [RunResult(r) for r in runs]
@@ -535,8 +529,6 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
     finally:
         bar.close()
         _write_status(spec, results)
-    from warpnerf.studies.table import write_tables
-
     text = write_tables(spec, results)
     failed = [r for r in results if r.status == "failed"]
     return {"results": results, "table": text, "failed": failed}

@@ -9,6 +9,7 @@ at any moment leaves either the previous checkpoint or the new one, never half a
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
 
 import numpy as np
@@ -25,8 +26,6 @@ def _fault(point: str) -> None:
     # fault injection for the crash tests: WARPNERF_FAULT=<point> sends this process
     # $WARPNERF_FAULT_SIGNAL (default KILL) there, so a test can crash it at an exact place
     if os.environ.get("WARPNERF_FAULT") == point:
-        import signal
-
         os.kill(os.getpid(), getattr(signal, "SIG" + os.environ.get("WARPNERF_FAULT_SIGNAL", "KILL")))
 
 

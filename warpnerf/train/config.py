@@ -26,7 +26,10 @@ import types
 import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+from importlib import resources
 from typing import Any, Optional, Union
+
+from warpnerf.model.g2fr import G2FR_BETA, MASK_MODES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -39,11 +42,6 @@ MODELS = ("ngp", "mtrf")
 
 # where monitor.py sends its scalars
 LOG_MODES = ("none", "tensorboard")
-
-# G²fR beta: levels are switched on over the first beta * T steps (paper eq. 15). The paper gives
-# no value; 0.5 is what the few-shot and pose presets were tuned with. This is the one default:
-# TrainConfig, freq_mask.G2fRSchedule and the spectrum experiments all read it from here.
-G2FR_BETA = 0.5
 
 
 class Registry(Sequence):
@@ -180,7 +178,7 @@ class TrainConfig:
 CHOICES: dict[str, Sequence] = {
     "task": Registry("warpnerf.train.tasks", "TASKS"),
     "model": MODELS,
-    "g2fr_mask": Registry("warpnerf.model.g2fr", "MASK_MODES"),
+    "g2fr_mask": MASK_MODES,
     "log": LOG_MODES,
 }
 
@@ -270,8 +268,6 @@ def load_toml(path: str) -> dict:
 
 def preset_path(task: str) -> str:
     """Path of the preset shipped for ``task`` (``configs/<task>.toml``)."""
-    from importlib import resources
-
     return str(resources.files("warpnerf.configs").joinpath(f"{task}.toml"))
 
 
@@ -285,7 +281,7 @@ def forward_facing_preset(task: str, scene: str, data_root: Optional[str]) -> Op
     path = preset_path(task + FORWARD_FACING_SUFFIX)
     if not os.path.exists(path):
         return None
-    from warpnerf.data.resolve import is_forward_facing
+    from warpnerf.data.resolve import is_forward_facing  # lazy: warpnerf.data loads torch; the CLI imports this module
 
     return path if is_forward_facing(scene, data_root) else None
 

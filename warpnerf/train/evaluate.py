@@ -16,15 +16,16 @@ from typing import TYPE_CHECKING, Iterator, Optional
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from warpnerf.train import metrics as M
-from warpnerf.train.config import exp_decay
 from warpnerf.data.scene import Views
+from warpnerf.geometry.cameras import PoseCorrection
+from warpnerf.train import metrics as M
+from warpnerf.train.checkpoint import atomic_write_text
+from warpnerf.train.config import exp_decay
 
-if TYPE_CHECKING:
-    from warpnerf.geometry.cameras import PoseCorrection
+if TYPE_CHECKING:  # the trainer's modules import this one
     from warpnerf.train.trainer import Trainer
-
 
 
 @contextlib.contextmanager
@@ -71,8 +72,6 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
     All views are refined together (:func:`refine_corrections`): every step renders
     ``rays_per_step`` random pixels of each view, ``pose_refine_steps`` steps from ``pose_lr`` to
     ``pose_lr_final`` as in training."""
-    from warpnerf.geometry.cameras import PoseCorrection
-
     n_views = c2w.shape[0]
     corr = PoseCorrection(n_views).to(trainer.device)
     images = views.images.to(trainer.device)
@@ -99,8 +98,6 @@ def eval_views(trainer: "Trainer") -> Views:
     return test.subset(pick)
 
 def evaluate(trainer: "Trainer", out_dir: Optional[str] = None, progress: bool = True) -> dict:
-    from tqdm.auto import tqdm
-
     views = eval_views(trainer)
     poses = trainer.task.eval_poses(trainer, views)
     weights = trainer.level_weights(trainer.cfg.iters)
@@ -150,7 +147,7 @@ def camera_z_scale(height: int, width: int, focal: float, cx: float, cy: float) 
 
 
 def save_png(path: str, img: torch.Tensor) -> None:
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # lazy: codecs stay out of --help (~0.08 s)
 
     imageio.imwrite(path, (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
 
@@ -172,6 +169,4 @@ def depth_to_rgb(depth: torch.Tensor, opacity: torch.Tensor, disparity: bool = F
 
 def write_json(path: str, data: dict) -> None:
     """JSON written atomically (temp file + fsync + rename): a crash never leaves half a file."""
-    from warpnerf.train.checkpoint import atomic_write_text
-
     atomic_write_text(path, json.dumps(data, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

@@ -16,6 +16,7 @@ sigma 1.5, K1 = 0.01, K2 = 0.03, data range 1, per channel then averaged. Two bo
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 from typing import Optional
@@ -224,8 +225,6 @@ def lpips_weight_files(path: str = "") -> Optional[list[str]]:
     installed lpips package for the linear layers; lpips is located, never imported); a file =
     a full LPIPS state dict, or a torchvision AlexNet checkpoint (linear layers then from lpips);
     a folder = holding ``alexnet-owt-7be5be79.pth`` and ``alex.pth``."""
-    import importlib.util
-
     lin = None
     spec = importlib.util.find_spec("lpips")
     if spec is not None and spec.origin:

@@ -26,6 +26,8 @@ from typing import Optional
 import torch
 
 from warpnerf.train import metrics as M
+from warpnerf.train.config import ConfigError
+from warpnerf.train.views import test_cameras
 
 TAGS = ("train/loss", "train/psnr", "heldout/psnr", "g2fr/active_levels", "g2fr/lipschitz", "pose/rot_err_deg",
         "pose/trans_err_x100", "perf/samples_per_ray", "perf/step_seconds")
@@ -68,16 +70,12 @@ class Monitor:
         self.writer = None
         if cfg.log == "tensorboard":
             try:
-                from torch.utils.tensorboard import SummaryWriter
+                from torch.utils.tensorboard import SummaryWriter  # optional extra: warpnerf[log]
             except ImportError:
-                from warpnerf.train.config import ConfigError
-
                 raise ConfigError("--log tensorboard needs the tensorboard package: "
                                   "pip install 'warpnerf[log]'") from None
             self.writer = SummaryWriter(log_dir or os.path.join(cfg.run_dir(), "tb"))
         elif cfg.log != "none":
-            from warpnerf.train.config import ConfigError
-
             raise ConfigError(f"unknown --log '{cfg.log}': expected none or tensorboard")
         self._heldout = self._heldout_views(trainer) if self.heldout_every > 0 else None
         trainer.history.setdefault("heldout", [])  # (step, PSNR dB) pairs
@@ -87,8 +85,6 @@ class Monitor:
 
     def _heldout_views(self, trainer):
         """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics)."""
-        from warpnerf.runs.video import test_cameras
-
         test = trainer.scene.test
         k = min(max(int(trainer.cfg.heldout_views), 1), len(test))
         pick = torch.linspace(0, len(test) - 1, k).round().long()

@@ -20,7 +20,7 @@ _RUN_COLOURS = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9"
 
 
 def _figure(figsize):
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # lazy: matplotlib costs ~0.5 s; tasks import this module for --help
 
     return Figure(figsize=figsize, dpi=110, layout="constrained")
 
@@ -60,8 +60,8 @@ def plot_cameras(path: str, gt_c2w, noisy_c2w=None, est_c2w_aligned=None, title:
     last two may be None. Each camera is drawn as its centre plus a small frustum pointing along
     its viewing direction. Writes a PNG to ``path`` and returns the path.
     """
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
-    from matplotlib.lines import Line2D
+    from matplotlib.lines import Line2D  # lazy: see _figure
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection  # lazy: see _figure
 
     sets = [("ground truth", _np(gt_c2w), _GT)]
     if noisy_c2w is not None:

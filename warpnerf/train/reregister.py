@@ -32,12 +32,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from warpnerf.geometry.cameras import apply_correction
+from warpnerf.geometry.cameras import PoseCorrection, apply_correction
 from warpnerf.train.config import exp_decay
 from warpnerf.train.evaluate import frozen, refine_corrections
 
-if TYPE_CHECKING:
-    from warpnerf.geometry.cameras import PoseCorrection
+if TYPE_CHECKING:  # the trainer's modules import this one
     from warpnerf.train.trainer import Trainer
 
 PROBE_PIXELS = 1024  # pixels per view: the loss that flags a view, refinement and the final comparison
@@ -130,8 +129,6 @@ class _ViewSearch:
         """Refine k corrections together on all pixels (rows are independent; the field must be
         frozen), the rate decaying from ``lr`` to ``lr_final``; returns the refined corrections and
         their losses."""
-        from warpnerf.geometry.cameras import PoseCorrection
-
         k, n = deltas.shape[0], self.rows.shape[0]
         corr = PoseCorrection(k, frame=self.frame).to(deltas.device)
         with torch.no_grad():

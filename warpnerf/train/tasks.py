@@ -10,12 +10,17 @@ loop itself never asks which task it runs.
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING, Optional
 
 import torch
+from tqdm.auto import tqdm
 
-from warpnerf.train.config import ConfigError, TrainConfig, exp_decay
 from warpnerf.data.scene import Scene, Views
+from warpnerf.geometry.cameras import PoseCorrection, evaluate_poses, map_gt_poses_to_estimate_frame, perturb_poses
+from warpnerf.train import plots, reregister
+from warpnerf.train.config import ConfigError, TrainConfig, exp_decay
+from warpnerf.train.evaluate import refine_poses
 
 if TYPE_CHECKING:
     from warpnerf.train.trainer import Trainer
@@ -151,8 +156,6 @@ class PoseTask(Task):
 
     def evaluate(self) -> dict:
         """:func:`warpnerf.geometry.cameras.evaluate_poses` of the current training poses (no gradient)."""
-        from warpnerf.geometry.cameras import evaluate_poses
-
         with torch.no_grad():
             return evaluate_poses(self.current_c2w(), self.gt_c2w, self.alignment)
 
@@ -165,8 +168,6 @@ class PoseTask(Task):
         return rot, trans
 
     def setup(self, trainer: "Trainer") -> None:
-        from warpnerf.geometry.cameras import PoseCorrection, evaluate_poses, perturb_poses
-
         self.alignment = self.alignment_for(trainer.scene)
         gt = trainer.train_c2w
         rot, trans = self.noise_sigmas(trainer.scene)
@@ -239,11 +240,7 @@ class PoseTask(Task):
         return {}
 
     def _reregister(self, trainer: "Trainer", step: int) -> None:
-        from tqdm.auto import tqdm
-
-        from warpnerf.train.reregister import reregister_views
-
-        found = reregister_views(trainer, self.correction, self.noisy_c2w, self.optimizer, step,
+        found = reregister.reregister_views(trainer, self.correction, self.noisy_c2w, self.optimizer, step,
                                  self.cfg.pose_reregister_ratio, self.cfg.pose_lr * self.lr_scale)
         self.reregistered.extend(found)
         if found:
@@ -259,8 +256,6 @@ class PoseTask(Task):
     def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
         """Test poses mapped into the optimised frame by the training-camera Sim(3) alignment, then
         refined photometrically (``pose_refine_steps`` Adam steps per view, field frozen)."""
-        from warpnerf.geometry.cameras import map_gt_poses_to_estimate_frame
-
         ev = self.evaluate()
         self.final = ev
         # on forward-facing scenes the alignment's rotation is the orientations' (alignment_for): the
@@ -268,8 +263,6 @@ class PoseTask(Task):
         mapped = map_gt_poses_to_estimate_frame(views.c2w.to(trainer.device).double(), ev["sim3"]).float()
         if self.cfg.pose_refine_steps <= 0:
             return mapped
-        from warpnerf.train.evaluate import refine_poses
-
         return refine_poses(trainer, mapped, views)
 
     def metrics(self, trainer: "Trainer") -> dict:
@@ -299,10 +292,6 @@ class PoseTask(Task):
         }
 
     def artifacts(self, trainer: "Trainer", out_dir: str) -> None:
-        import os
-
-        from warpnerf.train import plots
-
         plots.plot_cameras(os.path.join(out_dir, "cameras.png"), self.gt_c2w.cpu(), self.noisy_c2w.cpu(),
                            self.final["c2w_aligned"].cpu(), title=f"{trainer.scene.name}: camera poses")
         plots.plot_pose_error_curve(os.path.join(out_dir, "pose_error.png"), self.history["step"],

@@ -1,27 +1,39 @@
 """A thin training loop: sample pixels, render, MSE, Adam; its state for checkpoints.
 
-Tasks supply views and poses through hooks; evaluation, pose refinement, the turntable and file
-helpers live in :mod:`warpnerf.train.evaluate`.
+Tasks supply views and poses through hooks; evaluation, pose refinement and the file helpers live
+in :mod:`warpnerf.train.evaluate`, the turntable in :mod:`warpnerf.runs.video`.
 """
 
 from __future__ import annotations
 
+import ctypes
+import gc
+import sys
 import time
-from typing import Callable, NamedTuple, Optional
+from typing import TYPE_CHECKING, Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from warpnerf.train import metrics as M
-from warpnerf.train.config import TrainConfig
 from warpnerf.data.scene import Scene
 from warpnerf.model.encoders import make_grid_encoder
 from warpnerf.model.field import GridField
 from warpnerf.model.g2fr import G2fRSchedule
 from warpnerf.model.occupancy import OccupancyGrid
 from warpnerf.model.renderer import Renderer, default_step, pixel_rays
+from warpnerf.train import metrics as M
+from warpnerf.train.checkpoint import CheckpointError, rng_state, set_rng_state
+from warpnerf.train.config import TrainConfig
 from warpnerf.train.error_map import ErrorMap
-from warpnerf.train.tasks import Task
+
+try:
+    import resource
+except ImportError:  # pragma: no cover - Windows
+    resource = None
+
+if TYPE_CHECKING:  # tasks call back into the trainer; the trainer only names their type
+    from warpnerf.train.tasks import Task
 
 # training compaction (Renderer._active_prefixes): on while the last compacted step kept less than
 # this share of its marched samples; tried again every COMPACT_PROBE_EVERY steps (the occupancy
@@ -253,8 +265,6 @@ class Trainer:
     def fit(self, progress: bool = True, on_step_end: Optional[Callable[[int], None]] = None) -> None:
         """Run steps ``self.step`` .. ``cfg.iters - 1``; ``on_step_end(n_done)`` after each one
         (checkpoints, interrupts). A resumed trainer continues where its state left off."""
-        from tqdm.auto import tqdm
-
         cfg = self.cfg
         bar = tqdm(range(self.step, cfg.iters), desc=f"train {self.scene.name}/{cfg.task}", disable=not progress,
                    dynamic_ncols=True, mininterval=0.5, initial=self.step, total=cfg.iters)
@@ -291,8 +301,6 @@ class Trainer:
         """Everything needed to continue training bit-identically (and to evaluate): step, field,
         Adam state, occupancy grid, RNG streams, adaptive ray count, loss-ratio EMA, history, the
         task's state."""
-        from warpnerf.train.checkpoint import rng_state
-
         return {"step": self.step, "field": self.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
                 "rng": rng_state(self.gen), "n_rays": self.n_rays, "loss_ratio": self.loss_ratio,
@@ -301,8 +309,6 @@ class Trainer:
                 **({"error_map": self.error_map.state_dict()} if self.error_map is not None else {})}
 
     def load_state_dict(self, state: dict) -> None:
-        from warpnerf.train.checkpoint import CheckpointError, set_rng_state
-
         saved = state["field"]
         if "aabb_min" in saved and not (torch.equal(saved["aabb_min"].cpu(), self.field.aabb_min.cpu())
                                         and torch.equal(saved["aabb_size"].cpu(), self.field.aabb_size.cpu())):
@@ -339,12 +345,8 @@ def start_memory_window() -> None:
     previous run's garbage is collected and returned to the system (glibc ``malloc_trim``), then
     Linux's peak-RSS counter is reset (``/proc/self/clear_refs``, value 5); elsewhere this is a no-op
     and the peak stays the process's."""
-    import gc
-
     gc.collect()
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):  # not glibc
         pass
@@ -358,11 +360,7 @@ def start_memory_window() -> None:
 def peak_rss_mb() -> float:
     """Peak resident memory of this process since the run began (``start_memory_window``), MB
     (0 where the platform does not say)."""
-    try:
-        import resource
-    except ImportError:  # pragma: no cover - Windows
+    if resource is None:  # pragma: no cover - Windows
         return 0.0
-    import sys
-
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
