@@ -155,3 +155,24 @@ def test_report_writes_and_check_catches_a_hand_edit(tmp_path, capsys):
 def test_readme_without_markers_is_an_error(tmp_path):
     with pytest.raises(R.RecordError, match="markers"):
         report.render_readme("# no markers\n", [])
+
+
+def test_train_record_holds_the_run_folder_and_refuses_a_second_time(tmp_path, monkeypatch):
+    """`train --record NAME` end to end on a tiny built-in scene: the record carries the run's own
+    metrics.json and config.toml; the same name again fails in one line before any run folder exists."""
+    from warpnerf.cli import main
+
+    monkeypatch.setenv("WARPNERF_CACHE", str(tmp_path / "cache"))
+    recs = tmp_path / "recs"
+    args = ["train", "--scene", "chair", "--task", "fewshot", "--builtin-resolution", "48", "--iters", "10",
+            "--eval-max-views", "1", "--video-frames", "0", "--quiet", "--records-dir", str(recs), "--record", "tiny"]
+    assert main([*args, "--out", str(tmp_path / "run")]) == 0
+    rec = R.load_record(str(recs / "tiny.json"))
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    metrics.pop("heldout_history")
+    assert rec["runs"][0]["metrics"] == metrics
+    assert rec["runs"][0]["config"]["iters"] == 10 and rec["runs"][0]["config"]["task"] == "fewshot"
+    assert rec["kind"] == "run" and rec["command"].startswith("warpnerf train --scene chair")
+    assert isinstance(rec["cpu"]["other_cores"], float) or rec["cpu"]["other_cores"] is None
+    assert main([*args, "--out", str(tmp_path / "run2")]) == 2
+    assert not (tmp_path / "run2").exists()

@@ -18,6 +18,8 @@ from warpnerf.openmp import set_wait_defaults
 set_wait_defaults()
 
 from warpnerf import device
+from warpnerf.runs import record
+from warpnerf.studies import report
 from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
 from warpnerf.cli.flags import add_config_flags, config_overrides
@@ -37,6 +39,51 @@ def _setup_device(args) -> str:
         return device.resolve_device(args.device)
     except ValueError as e:
         raise UserError(str(e)) from e
+
+
+def _add_record(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--record", metavar="NAME", default=None,
+                   help="also write a results record docs/results/NAME.json (command, commit, machine, whether the "
+                        "CPU was free, each run's metrics.json and config.toml); 'warpnerf report' renders it")
+    p.add_argument("--records-dir", default=None, help="folder for --record (default docs/results)")
+    p.add_argument("--record-replace", action="store_true", help="with --record: replace an existing record")
+
+
+class _Recorder:
+    """``--record NAME``: checks the record can be written before any work, measures the CPU left to
+    other processes while the work runs, then writes the record from the run folders."""
+
+    def __init__(self, args, kind: str):
+        self.args, self.kind, self.path, self.meter = args, kind, None, None
+        if args.record:
+            self.path = record.check_new_record(args.record, args.records_dir, replace=args.record_replace)
+            self.meter = record.CpuMeter().start()
+
+    def write(self, run_dirs: list[str], extra: dict | None = None) -> None:
+        if self.path is None:
+            return
+        cpu = self.meter.stop()
+        runs = [record.read_run_files(d) for d in run_dirs]
+        rec = record.build_record(self.args.record, self.kind, self.args.argv, runs, cpu,
+                                  threads=device.num_threads(), extra=extra)
+        record.write_record(self.path, rec)
+        alone = {True: "alone", False: f"NOT alone: other processes used {cpu['other_cores']:.2f} cores",
+                 None: "alone: unknown"}[cpu["alone"]]
+        print(f"record: {self.path} ({alone})")
+
+
+def _table_record_dirs(results: list) -> tuple[list[str], dict]:
+    """Run folders of a table or sweep's finished runs, and which of them this invocation only read."""
+    dirs = [r.run.cfg.run_dir() for r in results if r.metrics]
+    reused = [r.run.name for r in results if r.status == "skipped"]
+    return dirs, ({"reused_runs": reused} if reused else {})
+
+
+def cmd_sweep(args) -> int:
+    from warpnerf.studies import sweep  # lazy: keeps --help fast (torch)
+
+    recorder = _Recorder(args, "table")
+    return sweep.run_cli(args, on_done=lambda res: recorder.write(*_table_record_dirs(res["results"])))
 
 
 def cmd_bench(args) -> int:
@@ -79,12 +126,14 @@ def cmd_train(args) -> int:
         cfg = build_config(task, None, overrides)
     else:
         cfg = build_config(task, args.config, overrides)
+    recorder = _Recorder(args, "run")
     metrics = run_training(cfg, progress=not args.quiet, overwrite=args.overwrite, resume=bool(args.resume),
                            force=args.force)
     if metrics.get("already_finished"):
         return 0
     print(_summary(metrics))
     print(f"run folder: {cfg.run_dir()}")
+    recorder.write([cfg.run_dir()])
     return 0
 
 
@@ -146,10 +195,12 @@ def cmd_table(args) -> int:
     from warpnerf.studies.table import run_table  # lazy: keeps --help fast (torch)
 
     _setup_device(args)
+    recorder = _Recorder(args, "table")
     res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
                     data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
                     config_file=args.config, threads=args.threads, progress=not args.quiet)
     print(res["table"])
+    recorder.write(*_table_record_dirs(res["results"]))
     return report_failures(res["failed"])
 
 
@@ -176,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue the unfinished run folder RUN from its last checkpoint")
     t.add_argument("--force", action="store_true", help="with --resume: accept a changed configuration")
     t.add_argument("--overwrite", action="store_true", help="clear an existing run folder at --out first")
+    _add_record(t)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="re-evaluate a finished run folder")
@@ -203,10 +255,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="(always on now: a run folder holding a finished run of the same configuration is read)")
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_device(tb)
+    _add_record(tb)
     tb.set_defaults(func=cmd_table)
     from warpnerf.studies import sweep  # lazy (torch): 'warpnerf sweep SPEC.toml' (local or Ray backend)
 
     sweep.add_parser(sub)
+    _add_record(sub.choices["sweep"])
+    sub.choices["sweep"].set_defaults(func=cmd_sweep)
+    report.add_parser(sub)  # renders docs/results.md from docs/results/ (stdlib only: no torch)
+    sub.choices["report"].set_defaults(func=report.run_cli)
 
     b = sub.add_parser("bench", help="benchmarks that print measured numbers")
     b.add_argument("what", choices=["encoding", "step", "render"], help="what to benchmark")
@@ -236,8 +293,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
-    user_errors: tuple = (UserError, ConfigError)
+    args.argv = argv  # what --record writes as the command
+    user_errors: tuple = (UserError, ConfigError, record.RecordError)
     interrupted: tuple = ()
     try:
         # after parsing, so that --help never loads torch and the trainer for these error types

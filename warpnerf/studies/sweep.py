@@ -563,7 +563,8 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run_cli)
 
 
-def run_cli(args) -> int:
+def run_cli(args, on_done: Optional[Callable[[dict], None]] = None) -> int:
+    """``warpnerf sweep``; ``on_done(result)`` runs after the table is printed (the CLI's ``--record``)."""
     spec = load_spec(args.spec)
     if args.out:
         spec.out = args.out
@@ -578,6 +579,8 @@ def run_cli(args) -> int:
         print(f"warpnerf: error: {e}", file=sys.stderr)
         return 2
     print(res["table"])
+    if on_done is not None:
+        on_done(res)
     return report_failures(res["failed"])
 
 
