@@ -50,6 +50,12 @@ def add_output_commands(sub) -> None:
     v.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0: reachable from other machines)")
     v.add_argument("--port", type=int, default=8080)
     v.add_argument("--preview-height", type=int, default=160, help="rendered image height, pixels")
+    v.add_argument("--max-size", default="1920x1080",
+                   help="WIDTHxHEIGHT no render exceeds, whatever canvas a browser reports (aspect kept)")
+    v.add_argument("--max-pixels", type=int, default=1920 * 1080, help="pixel budget of one render")
+    v.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                   help="also accept browsers whose page comes from ORIGIN (e.g. http://myhost:9000; '*': any); "
+                        "by default only the viewer's own page may connect")
     v.add_argument("--wait", type=float, default=0.0,
                    help="seconds to wait for checkpoint.pt of a training run that has not saved one yet")
     v.set_defaults(func=cmd_view)
@@ -110,12 +116,24 @@ def cmd_view(args) -> int:
         import viser  # noqa: F401  # optional extra: warpnerf[viewer]
     except ImportError:
         raise UserError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
-    from warpnerf.outputs.viewer import RunViewer, serve, wait_for_checkpoint  # lazy: keeps --help fast (torch)
+    from warpnerf.outputs.viewer import (RunViewer, parse_size, serve, view_url,  # lazy: keeps --help fast (torch)
+                                         wait_for_checkpoint)
 
+    try:
+        max_size = parse_size(args.max_size)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if args.max_pixels < 256 or not 1 <= args.preview_height <= max_size[1]:
+        raise UserError(f"need --max-pixels >= 256 and 1 <= --preview-height <= {max_size[1]} (--max-size height)")
+    if not 0 <= args.port <= 65535:
+        raise UserError(f"--port {args.port}: must be 0..65535")
     if args.wait > 0 and not wait_for_checkpoint(args.run, args.wait):
         raise UserError(f"no checkpoint.pt appeared in {args.run} within {args.wait:.0f} s")
-    viewer = RunViewer(args.run, args.device, args.preview_height)
-    print(f"warpnerf view: http://{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:{args.port} "
-          f"(step {viewer.step}; Ctrl-C to stop)", flush=True)
-    serve(viewer, args.host, args.port)
+    viewer = RunViewer(args.run, args.device, args.preview_height, max_size=max_size, max_pixels=args.max_pixels)
+
+    def announce(port: int) -> None:  # the port viser bound: the next free one when --port is busy
+        moved = f"; port {args.port} was busy" if args.port not in (0, port) else ""
+        print(f"warpnerf view: {view_url(args.host, port)} (step {viewer.step}{moved}; Ctrl-C to stop)", flush=True)
+
+    serve(viewer, args.host, args.port, allow_origins=args.allow_origin, announce=announce)
     return 0

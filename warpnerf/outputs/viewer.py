@@ -6,6 +6,12 @@ browser's aspect) and sends it as the page's background image. Viser cameras fol
 (x right, y down, looking down +z); warpnerf's c2w follow OpenGL (x right, y up, looking down
 -z), hence the flip of the y and z axes in :func:`c2w_from_viser`.
 
+Limits: a browser reports its own canvas size, so every render is clamped by
+:func:`clamp_render_size` to ``max_width`` x ``max_height`` and ``max_pixels`` (aspect kept), each
+browser has at most one render queued (a newer camera replaces an older one, :class:`LatestOnly`),
+and websocket connections whose ``Origin`` is not the page's own (or one of ``allow_origins``) are
+closed before anything is rendered for them (:func:`origin_allowed`).
+
 Attaching to a training run: ``warpnerf train --checkpoint-every 100`` writes ``checkpoint.pt``
 (with its step, so the G²fR level weights match) every 100 steps; the viewer polls the file's
 modification time and reloads it, re-rendering every connected browser.
@@ -13,10 +19,12 @@ modification time and reloads it, re-rendering every connected browser.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
-from typing import Optional
+from typing import Callable, Iterable, Optional
+from urllib.parse import urlsplit
 
 import numpy as np
 import torch
@@ -26,6 +34,100 @@ from warpnerf.runs.video import look_target
 from warpnerf.train.views import test_cameras, training_cameras
 
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
+
+MAX_WIDTH, MAX_HEIGHT = 1920, 1080  # default --max-size
+MAX_PIXELS = MAX_WIDTH * MAX_HEIGHT  # default pixel budget of one render
+
+
+def clamp_render_size(height: float, aspect: float, max_width: int = MAX_WIDTH, max_height: int = MAX_HEIGHT,
+                      max_pixels: int = MAX_PIXELS) -> tuple[int, int]:
+    """(height, width) of a render ``height`` pixels tall with width/height ``aspect``, scaled down
+    (aspect kept) to fit ``max_width`` x ``max_height`` and ``max_pixels``; at least 1 x 1.
+
+    The aspect comes from the browser's canvas, so anything is possible: a non-finite or
+    non-positive aspect or height falls back to 1.0 / 1 pixel.
+
+    >>> clamp_render_size(160, 2000.0)  # a 2000x1 canvas: 1920 wide, not 320000
+    (1, 1920)
+    >>> clamp_render_size(160, 1.5)
+    (160, 240)
+    """
+    aspect = float(aspect) if isinstance(aspect, (int, float)) and math.isfinite(aspect) and aspect > 0 else 1.0
+    h = float(height) if isinstance(height, (int, float)) and math.isfinite(height) and height >= 1 else 1.0
+    w = h * aspect
+    scale = min(1.0, max_width / w, max_height / h, math.sqrt(max_pixels / (w * h)))
+    h, w = h * scale, w * scale
+    hi, wi = max(int(round(h)), 1), max(int(round(w)), 1)
+    # rounding up may step over a limit by a pixel: floor then
+    if wi > max_width or hi > max_height or wi * hi > max_pixels:
+        hi, wi = max(int(h), 1), max(int(w), 1)
+    return min(hi, max_height), min(wi, max_width)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"1920x1080"`` -> (1920, 1080); ValueError for anything else (or a side < 16)."""
+    parts = str(text).lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise ValueError(f"--max-size {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080")
+    w, h = int(parts[0]), int(parts[1])
+    if w < 16 or h < 16:
+        raise ValueError(f"--max-size {text!r}: width and height must be >= 16")
+    return w, h
+
+
+def origin_allowed(origin: Optional[str], host_header: Optional[str], allow_origins: Iterable[str] = ()) -> bool:
+    """Whether a websocket handshake's ``Origin`` may connect: the page's own origin (its
+    host:port equals the ``Host`` the browser connected to), one listed in ``allow_origins``, or
+    ``*`` there. No ``Origin`` (not a browser: scripts, curl) is allowed; a browser always sends one,
+    so another site's page cannot drive the viewer through the visitor's browser."""
+    allow = {a.rstrip("/").lower() for a in allow_origins}
+    if "*" in allow or origin is None:
+        return True
+    origin = origin.strip().rstrip("/").lower()
+    if origin in allow:
+        return True
+    if not host_header:
+        return False
+    try:
+        netloc = urlsplit(origin).netloc
+    except ValueError:
+        return False
+    return bool(netloc) and netloc == host_header.strip().lower()
+
+
+class LatestOnly:
+    """At most one job per key running, newer requests replacing queued ones.
+
+    :meth:`submit` runs ``job`` now if nothing runs for ``key``; otherwise it marks the key dirty
+    and returns at once, and the running call runs ``job`` once more when it finishes (the job
+    reads the newest state itself, e.g. the browser's current camera). N camera updates during
+    one slow render cost two renders, not N."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._busy: set = set()
+        self._again: dict = {}
+
+    def submit(self, key, job: Callable[[], None]) -> bool:
+        """True if this call ran the job (perhaps several times), False if it was handed over."""
+        with self._lock:
+            if key in self._busy:
+                self._again[key] = job
+                return False
+            self._busy.add(key)
+        try:
+            while True:
+                job()
+                with self._lock:
+                    job = self._again.pop(key, None)
+                    if job is None:
+                        self._busy.discard(key)
+                        return True
+        except BaseException:
+            with self._lock:
+                self._busy.discard(key)
+                self._again.pop(key, None)
+            raise
 
 
 def quat_to_matrix(wxyz) -> np.ndarray:
@@ -76,12 +178,17 @@ class RunViewer:
     Args:
         run_dir: run folder (``config.toml`` and ``checkpoint.pt``).
         preview_height: rendered image height in pixels (width from the browser's aspect).
+        max_size: (width, height) no render exceeds (:func:`clamp_render_size`).
+        max_pixels: pixel budget of one render.
     """
 
-    def __init__(self, run_dir: str, device: str = "auto", preview_height: int = 160):
+    def __init__(self, run_dir: str, device: str = "auto", preview_height: int = 160,
+                 max_size: tuple[int, int] = (MAX_WIDTH, MAX_HEIGHT), max_pixels: int = MAX_PIXELS):
         self.run_dir = run_dir
         self.ckpt = os.path.join(run_dir, CHECKPOINT)
         self.preview_height = int(preview_height)
+        self.max_width, self.max_height = (int(v) for v in max_size)
+        self.max_pixels = int(max_pixels)
         self.trainer = load_run(run_dir, device)
         self.lock = threading.Lock()  # one render or reload at a time
         self._mtime = os.path.getmtime(self.ckpt)
@@ -123,9 +230,12 @@ class RunViewer:
     @torch.no_grad()
     def render(self, c2w: torch.Tensor, fov_y: float, aspect: float, height: Optional[int] = None) -> np.ndarray:
         """(H, W, 3) uint8 render from an OpenGL (3, 4) camera with vertical field of view
-        ``fov_y`` (radians) and width/height ``aspect``."""
-        h = int(height or self.preview_height)
-        w = max(int(round(h * aspect)), 1)
+        ``fov_y`` (radians) and width/height ``aspect``, clamped by :func:`clamp_render_size`."""
+        h, w = clamp_render_size(height or self.preview_height, aspect, self.max_width, self.max_height,
+                                 self.max_pixels)
+        fov_y = float(fov_y)
+        if not (math.isfinite(fov_y) and 1e-3 < fov_y < math.pi - 1e-3):
+            fov_y = 1.0  # a browser's nonsense fov: ~57 degrees instead of a non-finite focal length
         focal = 0.5 * h / np.tan(0.5 * fov_y)
         with self.lock:
             weights = self.trainer.level_weights(self.step)
@@ -138,16 +248,58 @@ class RunViewer:
         return self.render(c2w_from_viser(position, wxyz), fov_y, aspect, height)
 
 
+def _guard_origins(server, allow_origins: tuple) -> bool:
+    """Close websocket connections whose Origin :func:`origin_allowed` refuses, as they open
+    (before viser registers the client or anything is rendered for it). viser has no public hook
+    for the handshake: this puts a connect callback first on its websocket server (viser 1.x,
+    ``_websock_server``). False when this viser does not have one (connections go unchecked)."""
+    ws = getattr(server, "_websock_server", None)
+    callbacks = getattr(ws, "_client_connect_cb", None)
+    live = getattr(ws, "_live_connections", None)
+    if not isinstance(callbacks, list) or not isinstance(live, dict):
+        return False
+
+    async def check(conn) -> None:
+        connection = live.get(conn.client_id)
+        request = getattr(connection, "request", None)
+        if request is None:
+            return
+        origin, host = request.headers.get("Origin"), request.headers.get("Host")
+        if not origin_allowed(origin, host, allow_origins):
+            print(f"warpnerf view: refused a connection from origin {origin} "
+                  "(not this viewer's page; see --allow-origin)", flush=True)
+            await connection.close(1008, "origin not allowed")
+
+    callbacks.insert(0, check)
+    return True
+
+
+def view_url(host: str, port: int) -> str:
+    return f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0', '::', '') else host}:{port}"
+
+
 def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_seconds: float = 2.0,
-          stop: Optional[threading.Event] = None):
-    """Serve ``viewer`` with viser until ``stop`` is set (or forever). Returns the server after stop."""
+          stop: Optional[threading.Event] = None, allow_origins: Iterable[str] = (),
+          announce: Optional[Callable[[int], None]] = None):
+    """Serve ``viewer`` with viser until ``stop`` is set (or forever). Returns the server after stop.
+
+    ``announce(port)`` is called once the server listens, with the port it actually bound (viser
+    moves on to the next free port when ``port`` is busy). Browsers whose page comes from another
+    origin than the viewer's own (and not in ``allow_origins``; ``*`` allows all) are disconnected
+    before anything is rendered for them."""
     try:
         import viser  # optional extra: warpnerf[viewer]
     except ImportError:
         raise RuntimeError("warpnerf view needs viser: pip install 'warpnerf[viewer]'") from None
 
     stop = stop or threading.Event()
+    allow_origins = tuple(allow_origins)
     server = viser.ViserServer(host=host, port=port, verbose=False)
+    if "*" not in allow_origins and not _guard_origins(server, allow_origins):
+        print("warpnerf view: this viser version does not expose the websocket Origin; connections are not "
+              "checked (keep --host 127.0.0.1)", flush=True)
+    if announce is not None:
+        announce(server.get_port())
     c2w0 = viewer.initial_camera()
     up = viewer.trainer.train_c2w[:, :, 1].mean(0).cpu().double().numpy()
     up = up / np.linalg.norm(up)
@@ -158,8 +310,9 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
     server.initial_camera.up = tuple(float(v) for v in up)
     server.initial_camera.fov = float(2 * np.arctan(0.5 * viewer.trainer.views.height / viewer.trainer.views.focal))
     status = server.gui.add_markdown(f"**{os.path.basename(os.path.abspath(viewer.run_dir))}** step {viewer.step}")
+    queue = LatestOnly()  # one render per browser at a time; newer cameras replace queued ones
 
-    def update(client) -> None:
+    def render_for(client) -> None:
         if stop.is_set():  # shutting down: the connection is closing
             return
         cam = client.camera
@@ -171,6 +324,9 @@ def serve(viewer: RunViewer, host: str = "127.0.0.1", port: int = 8080, poll_sec
             return
         viewer.renders += 1
         client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+
+    def update(client) -> None:
+        queue.submit(client.client_id, lambda: render_for(client))
 
     @server.on_client_connect
     def _(client) -> None:
