@@ -52,7 +52,7 @@ def test_recentring_keeps_relative_poses_and_centres_the_average(llff_scene):
     rel_got = np.einsum("ji,njk->nik", poses[0, :, :3], poses[:, :, :3])
     np.testing.assert_allclose(rel_got, rel_expected, atol=1e-5)
     assert scene.ray_space.kind == "ndc" and scene.kind == "llff"
-    # z' from the near plane to infinity; x', y' at least the average camera's frustum (test_rayspace.py
+    # z' from the near plane to infinity; x', y' at least the average camera's frustum (tests/geometry/test_rayspace.py
     # checks that the box holds every training ray)
     x0, y0, z0, x1, y1, z1 = scene.aabb
     assert (z0, z1) == (-1.0, 1.0) and (x0, y0) == (-x1, -y1) and min(x1, y1) >= 1.0

@@ -9,7 +9,7 @@ from test_cameras import _ring_cameras
 
 from warpnerf.geometry import cameras as C
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def _load():

@@ -71,7 +71,7 @@ def test_forward_matches_twin():
 
 @pytest.mark.parametrize("wrt, sparse", [("both", False), ("x", False), ("lines", False), ("both", True)])
 def test_gradients_match_twin(wrt, sparse):
-    """Dense cotangents, and sparse ones (see tests/test_hashgrid.py: skipped zero rows leave the
+    """Dense cotangents, and sparse ones (see tests/ops/test_hashgrid.py: skipped zero rows leave the
     gradients equal to the twin's)."""
     spec = small_spec()
     x, lines = random_inputs(spec, seed=3 if sparse else 1)

@@ -120,7 +120,7 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, padding: str = "valid") -> float:
 # The ``lpips`` package builds its AlexNet trunk with torchvision, and PyPI's torchvision does not
 # import beside every torch build (torch 2.13.0+cpu here). So the computation lives here in plain
 # torch, with the same layers, layer names and formula as ``lpips.LPIPS(net="alex", version="0.1")``
-# (checked in tests/test_lpips.py against the lpips package's own forward, on random trunk weights),
+# (checked in tests/train/test_lpips.py against the lpips package's own forward, on random trunk weights),
 # and only the *weights* come from outside. Nothing is ever downloaded.
 #
 # Weights (both are needed; see docs/outputs.md):
