@@ -1,7 +1,7 @@
 import os
 
-# Helpers (tiny_scene, fake_scenes, chair_run) live in this folder; pyproject's pytest pythonpath puts it on
-# sys.path, so the tests in the per-layer sub-folders import them by name.
+# Helpers (tiny_scene, fake_scenes, chair_run, trainer_helpers) live in this folder; pyproject's pytest
+# pythonpath puts it on sys.path, so the tests in the per-layer sub-folders import them by name.
 
 # torch's OpenMP workers: the command line's short spin (warpnerf/openmp.py), before torch loads
 from warpnerf.openmp import set_wait_defaults  # noqa: E402  (imports nothing heavy)

@@ -67,7 +67,7 @@ def test_holdout_split_and_intrinsics(llff_scene):
     assert scene.test.ids == [0, 8]
     assert scene.train.ids == [1, 2, 3, 4, 5, 6, 7, 9]
     assert scene.train.images.shape == (8, 6, 8, 3)
-    # photos are opaque: alpha 1 everywhere, so training uses random backgrounds (test_trainer.py)
+    # photos are opaque: alpha 1 everywhere, so training uses random backgrounds (tests/train/test_trainer_loss.py)
     assert scene.train.alpha.shape == (8, 6, 8) and bool((scene.train.alpha == 1).all())
     assert scene.test.alpha.shape == (2, 6, 8)
     # Image k is uniformly 10 k / 255: checks that images follow their poses through the split.

@@ -87,7 +87,7 @@ def test_share_must_be_a_fraction():
 
 
 def test_trainer_with_error_sampling_learns_and_resumes_identically():
-    from test_trainer import make_trainer
+    from trainer_helpers import make_trainer
 
     t = make_trainer(iters=60, error_sampling=0.5)
     losses = [t.train_step(s)["loss"] for s in range(40)]

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from test_trainer import make_trainer
+from trainer_helpers import make_trainer
 from warpnerf.geometry.cameras import PoseCorrection, perturb_poses, rotation_error_deg
 from warpnerf.train.reregister import reregister_views, view_losses
 
