@@ -1,4 +1,4 @@
-"""Bad input fails at the door (issue 11): each case writes a broken file or folder, runs the CLI in
+"""Bad input fails at the door: each case writes a broken file or folder, runs the CLI in
 a subprocess, and checks exit code 2, one stderr line naming the culprit, and that nothing was written.
 """
 

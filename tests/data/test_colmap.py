@@ -220,7 +220,7 @@ def test_short_training_matches_the_blender_load(exported):
 
 
 def test_unbounded_garden_captures_load_contracted(tmp_path):
-    """Issue 12.3/12.5: the built-in unbounded garden written out as a capture loads with
+    """The built-in unbounded garden written out as a capture loads with
     ``unbounded=True`` into a contracted ray space around the normalised cameras, the same images
     as the built-in load; without the flag it stays a bounded box."""
     cache = str(tmp_path / "cache")

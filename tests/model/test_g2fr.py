@@ -108,7 +108,7 @@ def test_schedule_host_weights_equal_the_tensor_form(mode):
 
 @pytest.mark.parametrize("model", ["ngp", "mtrf"])
 def test_trainer_weights_are_the_ones_the_kernel_receives(monkeypatch, model):
-    """Issue 13: the weights the trainer computes at a step reach the encoder's kernel unchanged,
+    """The weights the trainer computes at a step reach the encoder's kernel unchanged,
     and only the levels they switch on are launched."""
     from tiny_scene import tiny_scene
     from warpnerf.train.config import build_config

@@ -1,4 +1,4 @@
-"""Kill tests (issue 11): a run crashed (SIGKILL) or interrupted (SIGINT/SIGTERM) at any point and
+"""Kill tests: a run crashed (SIGKILL) or interrupted (SIGINT/SIGTERM) at any point and
 then resumed ends bit-identical to an uninterrupted run: checkpoint tensors, history and metrics.
 
 A tiny configuration keeps each subprocess to seconds; the pose task exercises both Adam states.

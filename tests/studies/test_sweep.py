@@ -83,7 +83,7 @@ def test_shipped_specs_expand(name):
     assert path is not None, name
     runs = expand(load_spec(path))
     assert runs and all(r.cfg.video_frames == 0 for r in runs)
-    if name == "lego_fewshot_curve":  # issue #10: both arms, 20k steps, held-out PSNR along the way
+    if name == "lego_fewshot_curve":  # both arms, 20k steps, held-out PSNR along the way
         assert sorted(r.cfg.g2fr for r in runs) == [False, True]
         assert all(r.cfg.iters == 20000 and r.cfg.heldout_every == 1000 for r in runs)
 

@@ -14,7 +14,7 @@ def arms(source="dataset", model="ngp"):
     return {"w/": w, "w/o": wo}
 
 
-# (scene, task, model, arm, metric, value) as quoted in issue 10 and read off the paper's tables
+# (scene, task, model, arm, metric, value) read off the paper's tables
 SPOT_CHECKS = [
     ("lego", "pose", "ngp", "w/", (0.049, 0.167, 32.53)), ("lego", "pose", "ngp", "w/o", (1.181, 4.361, 31.33)),
     ("mic", "pose", "ngp", "w/", (0.042, 0.139, 33.30)), ("mic", "pose", "ngp", "w/o", (0.965, 2.627, 30.02)),
