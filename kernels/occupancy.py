@@ -1,7 +1,9 @@
 """Occupancy grid over the scene box (instant-ngp / nerfacc style).
 
-Warp only; the torch side is ``warpnerf/occupancy.py`` (class ``OccupancyGrid``) and the ray
-marcher that reads the grid is ``kernels/raymarch.py``.
+Warp only. Each kernel is launched by the op of the same name in ``warpnerf/ops/occupancy.py``
+(torch twins in ``warpnerf/ops/reference/occupancy.py``); the grid that runs them is
+``warpnerf/model/occupancy.py`` (class ``OccupancyGrid``), and the ray marcher that reads the grid
+is ``kernels/raymarch.py``.
 
 Cell layout, shared with the marcher through :func:`grid_coords` and :func:`cell_index`:
   grid coordinates  g = (p - aabb_min) * grid_scale,  grid_scale = res / (aabb_max - aabb_min)

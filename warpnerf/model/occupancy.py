@@ -2,8 +2,8 @@
 
 A res^3 grid of cells over the scene box keeps an exponential moving max of the density seen
 in each cell (instant-ngp / nerfacc rule) and a bitfield of the cells worth sampling. The
-kernels are in ``kernels/occupancy.py``; they share the cell layout with the marcher:
-cell of world point p = floor((p - aabb_min) / (aabb_max - aabb_min) * res), flat index
+update's steps are the ops of :mod:`warpnerf.ops.occupancy`; they share the cell layout with the
+marcher: cell of world point p = floor((p - aabb_min) / (aabb_max - aabb_min) * res), flat index
 (ix * res + iy) * res + iz.
 """
 
@@ -13,8 +13,8 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from warpnerf.device import init_warp
-from warpnerf.ops.launch import aabb_floats, as_warp, launch
+from warpnerf.ops.launch import aabb_floats
+from warpnerf.ops.occupancy import occupancy_bitfield, occupancy_ema, occupancy_sample_points, occupancy_scatter_max
 
 __all__ = ["OccupancyGrid"]
 
@@ -106,28 +106,18 @@ class OccupancyGrid:
                 called under ``torch.no_grad`` on chunks of at most 2**18 points.
             generator: torch generator (any device) for reproducible cell picks and jitter.
         """
-        wp = init_warp()
-        # lazy: Warp loads with the first update, not with the grid's module
-        from warpnerf.kernels.occupancy import occupancy_bitfield, occupancy_ema, occupancy_sample_points, occupancy_scatter_max
-
         lo, hi = self.aabb[:3], self.aabb[3:]
         res = self.resolution
         cells = self._pick_cells(step, generator)
         jitter = self._random(torch.rand, (cells.shape[0], 3), generator)
-        points = torch.empty(cells.shape[0], 3, dtype=torch.float32, device=self.device)
-        cell_size = wp.vec3(*[(h - l) / res for l, h in zip(lo, hi)])
-        launch(occupancy_sample_points, cells.shape[0],
-               [as_warp(cells), as_warp(jitter, wp.vec3), wp.vec3(*lo), cell_size, res, as_warp(points, wp.vec3)], self.device)
+        points = occupancy_sample_points(cells, jitter, lo, [(h - l) / res for l, h in zip(lo, hi)], res)
         sigmas = self._evaluate(density_fn, points)
 
         fresh = torch.full((self.num_cells,), -1.0, dtype=torch.float32, device=self.device)
-        grid_scale = wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)])
-        # one launch, never split across CPU threads: several samples may max into one cell
-        launch(occupancy_scatter_max, cells.shape[0],
-               [as_warp(points, wp.vec3), as_warp(sigmas), wp.vec3(*lo), grid_scale, res, as_warp(fresh)], self.device)
-        launch(occupancy_ema, self.num_cells, [as_warp(fresh), self.decay, as_warp(self.density)], self.device)
+        occupancy_scatter_max(points, sigmas, lo, [res / (h - l) for l, h in zip(lo, hi)], res, fresh)
+        occupancy_ema(fresh, self.decay, self.density)
         threshold = min(self.threshold, float(self.density.mean()))
-        launch(occupancy_bitfield, self.num_cells, [as_warp(self.density), threshold, as_warp(self.bitfield)], self.device)
+        occupancy_bitfield(self.density, threshold, self.bitfield)
         self._updates += 1
 
     def occupied_fraction(self) -> float:

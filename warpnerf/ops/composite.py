@@ -13,7 +13,7 @@ from typing import Sequence, Union
 import torch
 
 from warpnerf.device import init_warp
-from warpnerf.ops.launch import as_warp, launch_over_rays
+from warpnerf.ops.launch import as_warp, launch_over_rays, twin_dispatch
 
 __all__ = ["composite_rays", "active_sample_counts", "TRANSMITTANCE_EPS"]
 
@@ -21,6 +21,7 @@ __all__ = ["composite_rays", "active_sample_counts", "TRANSMITTANCE_EPS"]
 TRANSMITTANCE_EPS = 1e-4
 
 
+@twin_dispatch
 def composite_rays(
     sigmas: torch.Tensor,
     rgbs: torch.Tensor,
@@ -74,6 +75,7 @@ def composite_rays(
     return out if return_weights else out[:3]
 
 
+@twin_dispatch
 def active_sample_counts(
     sigmas: torch.Tensor,
     t_starts: torch.Tensor,

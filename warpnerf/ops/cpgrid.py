@@ -25,7 +25,8 @@ from dataclasses import dataclass
 
 import torch
 
-from warpnerf.ops.launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
+from warpnerf.ops.launch import (GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values,
+                                 twin_dispatch)
 
 __all__ = ["CPGridSpec", "cpgrid_encode", "init_cp_lines"]
 
@@ -128,6 +129,7 @@ def init_cp_lines(
     return (scale * eps).to(dtype=dtype, device=device).contiguous()
 
 
+@twin_dispatch
 def cpgrid_encode(
     x: torch.Tensor, lines: torch.Tensor, spec: CPGridSpec, level_weights=None,
     known_output: torch.Tensor | None = None,

@@ -20,11 +20,13 @@ import torch
 
 from warpnerf.device import init_warp
 from warpnerf.ops.hashgrid_spec import SUPPORTED_DIMS, SUPPORTED_FEATURES, HashGridSpec
-from warpnerf.ops.launch import GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values
+from warpnerf.ops.launch import (GridEncodeFunction, GridLauncher, check_grid_inputs, check_known_output, level_weight_values,
+                                 twin_dispatch)
 
 __all__ = ["hashgrid_encode", "HashGridSpec"]
 
 
+@twin_dispatch
 def hashgrid_encode(
     x: torch.Tensor, table: torch.Tensor, spec: HashGridSpec, level_weights=None,
     known_output: torch.Tensor | None = None,

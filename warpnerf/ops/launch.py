@@ -5,6 +5,8 @@
   that produced its inputs and consumes its outputs, with no device-wide sync), Warp's stream
   when the inputs are Warp arrays Warp itself uploaded (the mesh renderer).
 * :func:`launch_over_rays` cuts per-ray kernels into fixed CPU chunks on the thread pool.
+* :func:`twin_dispatch` marks a public op: under ``warpnerf.ops.use_backend("torch")``
+  (:mod:`warpnerf.ops.registry`) the call goes to its same-name pure-torch twin instead.
 * :class:`GridLauncher` owns everything the level-major grid encodings (hash grid, CP lines)
   share: forward/backward launches, level groups, the CPU thread split, the per-chunk ``grad_x``
   sums, and the per-level metadata, uploaded once. An encoding supplies only its kernels and
@@ -16,6 +18,7 @@ results are bit-identical whether the chunks run on one thread or several.
 
 from __future__ import annotations
 
+import functools
 from typing import Optional, Sequence
 
 import torch
@@ -28,6 +31,42 @@ _CPU_RAY_CHUNKS = 4
 # grid backward: fixed number of CPU level groups (not the thread count), so the grad_x summation
 # order never changes; each group scatters into disjoint rows of the parameter gradient
 _BWD_LEVEL_CHUNKS = 2
+
+
+# the backend switch: None = the Warp ops run; else {op module name: twin module} filled by
+# warpnerf.ops.registry.use_backend("torch") (which imports the twins: they import the ops, so the
+# ops cannot import them). One process-wide setting, read on the calling thread at each call.
+_TWIN_MODULES: Optional[dict] = None
+
+
+def twin_dispatch(op):
+    """Decorator of a public op: call ``op``, or, while the torch backend is on, the function of the
+    same name in its twin module (``warpnerf.ops.X`` -> ``warpnerf.ops.reference.X``), looked up at
+    call time. ``op.__twin__`` names the twin (module, function)."""
+    twin_module = op.__module__.replace("warpnerf.ops.", "warpnerf.ops.reference.", 1)
+
+    @functools.wraps(op)
+    def dispatch(*args, **kwargs):
+        twins = _TWIN_MODULES
+        if twins is None:
+            return op(*args, **kwargs)
+        return getattr(twins[twin_module], op.__name__)(*args, **kwargs)
+
+    dispatch.__twin__ = (twin_module, op.__name__)
+    return dispatch
+
+
+def twins_on() -> bool:
+    """Whether the ops run their torch twins (:func:`set_twin_modules`)."""
+    return _TWIN_MODULES is not None
+
+
+def set_twin_modules(modules: Optional[dict]) -> Optional[dict]:
+    """Route every :func:`twin_dispatch` op to ``modules`` ({twin module name: module}), or back to
+    Warp with ``None``; returns the previous setting. Use :func:`warpnerf.ops.use_backend`."""
+    global _TWIN_MODULES
+    previous, _TWIN_MODULES = _TWIN_MODULES, modules
+    return previous
 
 
 def launch(kernel, dim, inputs: list, device, outputs: list | None = None) -> None:

@@ -13,7 +13,7 @@ from typing import NamedTuple, Optional, Sequence
 import torch
 
 from warpnerf.device import init_warp
-from warpnerf.ops.launch import aabb_floats, as_warp, launch_over_rays
+from warpnerf.ops.launch import aabb_floats, as_warp, launch_over_rays, twin_dispatch
 
 __all__ = ["march_rays", "march_rays_within_budget", "march_rays_window", "MarchState", "PackedSamples",
            "prefix_rows", "rays_within_budget"]
@@ -46,6 +46,7 @@ def prefix_rows(ray_offsets: torch.Tensor, counts: torch.Tensor) -> tuple[torch.
     return ray, ray_offsets.long()[ray] + local
 
 
+@twin_dispatch
 def march_rays(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
@@ -109,6 +110,7 @@ def march_rays(
                                     occupied_blocks=occupied_blocks)[0]
 
 
+@twin_dispatch
 def march_rays_within_budget(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
@@ -250,6 +252,7 @@ class MarchState(NamedTuple):
         return self.k < 0
 
 
+@twin_dispatch
 def march_rays_window(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,

@@ -1,4 +1,4 @@
-"""Every Warp kernel module the package can create, in one list.
+"""Every Warp kernel module the package can create, in one list; every public op and the backend switch.
 
 Used by the ahead-of-time GPU compile test (``tests/test_cuda_compile.py``) and by
 ``warpnerf doctor --compile``, so neither keeps a hand-written list that could drift:
@@ -12,19 +12,71 @@ Used by the ahead-of-time GPU compile test (``tests/test_cuda_compile.py``) and 
   :data:`STATIC_KERNEL_MODULES`; a test checks that no kernel file is missing from it.
 
 Building the list imports Warp and defines the kernels (cheap: no compilation happens).
+
+:data:`OPS` lists every public op (each wrapped by :func:`warpnerf.ops.launch.twin_dispatch`) and
+:func:`use_backend` switches all of them at once to their pure-torch twins in
+:mod:`warpnerf.ops.reference` (``warpnerf bench step``'s torch arm, the twin tests).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from warpnerf.device import init_warp
-from warpnerf.ops import cpgrid, hashgrid
+from warpnerf.ops import composite, cpgrid, hashgrid, launch, occupancy, raymarch
+from warpnerf.ops.reference import composite as twin_composite
+from warpnerf.ops.reference import cpgrid as twin_cpgrid
+from warpnerf.ops.reference import hashgrid as twin_hashgrid
+from warpnerf.ops.reference import occupancy as twin_occupancy
+from warpnerf.ops.reference import raymarch as twin_raymarch
 
-__all__ = ["KernelModule", "STATIC_KERNEL_MODULES", "GRID_DTYPE_NAMES", "kernel_modules"]
+__all__ = ["KernelModule", "STATIC_KERNEL_MODULES", "GRID_DTYPE_NAMES", "kernel_modules", "OPS", "BACKENDS",
+           "use_backend", "current_backend"]
+
+# every public op: (its module, its name); each has a twin of the same name in TWIN_MODULES
+OPS = tuple((module, name) for module in (hashgrid, cpgrid, raymarch, composite, occupancy)
+            for name in {hashgrid: ["hashgrid_encode"], cpgrid: ["cpgrid_encode"],
+                         raymarch: ["march_rays", "march_rays_within_budget", "march_rays_window"],
+                         composite: ["composite_rays", "active_sample_counts"],
+                         occupancy: list(occupancy.__all__)}[module])
+
+# twin module name -> module, what launch.twin_dispatch looks the twins up in
+TWIN_MODULES = {m.__name__: m for m in (twin_hashgrid, twin_cpgrid, twin_raymarch, twin_composite, twin_occupancy)}
+
+BACKENDS = ("warp", "torch")
+
+
+def current_backend() -> str:
+    """``"warp"`` or ``"torch"``: what the public ops run right now."""
+    return "torch" if launch.twins_on() else "warp"
+
+
+@contextlib.contextmanager
+def use_backend(name: str):
+    """Run every public op (:data:`OPS`) on ``name``: ``"warp"`` (the kernels) or ``"torch"`` (the
+    same-name twins in :mod:`warpnerf.ops.reference`) inside the ``with`` block; the previous setting
+    comes back afterwards. Process-wide (all threads), not re-entrant across threads.
+
+    Example:
+        >>> import torch
+        >>> from warpnerf.ops import composite_rays
+        >>> with use_backend("torch"):
+        ...     rgb = composite_rays(torch.tensor([1e9]), torch.ones(1, 3), torch.zeros(1), torch.ones(1),
+        ...                          torch.zeros(1, dtype=torch.int32), torch.ones(1, dtype=torch.int32))[0]
+        >>> rgb.tolist(), current_backend()
+        ([[1.0, 1.0, 1.0]], 'warp')
+    """
+    if name not in BACKENDS:
+        raise ValueError(f"use_backend: unknown backend {name!r}, expected one of {BACKENDS}")
+    previous = launch.set_twin_modules(None if name == "warp" else dict(TWIN_MODULES))
+    try:
+        yield
+    finally:
+        launch.set_twin_modules(previous)
 
 # op name -> the kernels/ file (one Warp module) it launches
 STATIC_KERNEL_MODULES = {
