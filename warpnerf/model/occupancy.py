@@ -1,7 +1,10 @@
-"""The occupancy grid that lets :func:`warpnerf.ops.raymarch.march_rays` skip empty space.
+"""The occupancy grid: it keeps the density of the scene box and marches rays through it.
 
 A res^3 grid of cells over the scene box keeps an exponential moving max of the density seen
-in each cell (instant-ngp / nerfacc rule) and a bitfield of the cells worth sampling. The
+in each cell (instant-ngp / nerfacc rule) and a bitfield of the cells worth sampling. Like
+nerfacc's ``OccGridEstimator``, the grid is also what the renderer asks for samples
+(:meth:`OccupancyGrid.sample`, :meth:`OccupancyGrid.march_window`): it hands the marcher
+(:mod:`warpnerf.ops.raymarch`) its own box, bitfield, occupied box and occupied blocks. The
 update's steps are the ops of :mod:`warpnerf.ops.occupancy`; they share the cell layout with the
 marcher: cell of world point p = floor((p - aabb_min) / (aabb_max - aabb_min) * res), flat index
 (ix * res + iy) * res + iz.
@@ -15,6 +18,7 @@ import torch
 
 from warpnerf.ops.launch import aabb_floats
 from warpnerf.ops.occupancy import occupancy_bitfield, occupancy_ema, occupancy_sample_points, occupancy_scatter_max
+from warpnerf.ops.raymarch import MarchState, PackedSamples, march_rays_window, march_rays_within_budget
 
 __all__ = ["OccupancyGrid"]
 
@@ -40,7 +44,7 @@ class OccupancyGrid:
         aabb: 6 floats (xmin, ymin, zmin, xmax, ymax, zmax).
         resolution: res, cells per axis.
         density: (res^3,) float32 EMA of the density (same units as ``density_fn``).
-        bitfield: (res^3,) uint8, 1 = occupied; pass it to ``march_rays`` as ``occ_bitfield``.
+        bitfield: (res^3,) uint8, 1 = occupied (what :meth:`sample` and :meth:`march_window` skip by).
 
     Example:
         >>> grid = OccupancyGrid((-1, -1, -1, 1, 1, 1), resolution=16)
@@ -119,6 +123,38 @@ class OccupancyGrid:
         threshold = min(self.threshold, float(self.density.mean()))
         occupancy_bitfield(self.density, threshold, self.bitfield)
         self._updates += 1
+
+    def sample(self, rays_o: torch.Tensor, rays_d: torch.Tensor, near: float, far: float, step: float,
+               max_samples_per_ray: int = 1024, jitter: Optional[torch.Tensor] = None,
+               max_total_samples: Optional[int] = None, contract: bool = False) -> tuple[PackedSamples, int]:
+        """March (R, 3) rays through this grid's occupied cells into packed samples (no gradient).
+
+        :func:`~warpnerf.ops.raymarch.march_rays_within_budget` with this grid's box, bitfield and
+        resolution, and its :meth:`occupied_box` and :meth:`occupied_blocks` to skip empty space
+        (same samples, fewer steps). ``near``, ``far``, ``step``, ``jitter`` and ``contract`` as
+        there; ``max_total_samples`` caps the batch's samples: returns ``(samples, n)``, rays
+        [0, n) marched (n = R without a cap).
+
+        Example:
+            >>> grid = OccupancyGrid((-1, -1, -1, 1, 1, 1), resolution=2)
+            >>> o, d = torch.tensor([[0.0, 0.0, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+            >>> grid.sample(o, d, near=0.0, far=10.0, step=0.5)[0].t_starts.tolist()
+            [2.0, 2.5, 3.0, 3.5]
+        """
+        return march_rays_within_budget(rays_o, rays_d, self.aabb, self.bitfield, self.resolution, near, far, step,
+                                        max_samples_per_ray, jitter, max_total_samples=max_total_samples,
+                                        contract=contract, occupied_box=self.occupied_box(),
+                                        occupied_blocks=self.occupied_blocks())
+
+    def march_window(self, rays_o: torch.Tensor, rays_d: torch.Tensor, state: MarchState, window: int, near: float,
+                     far: float, step: float, max_samples_per_ray: int = 1024,
+                     contract: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The next at most ``window`` samples of every ray from ``state`` (updated in place):
+        :func:`~warpnerf.ops.raymarch.march_rays_window` through this grid, skipping empty space as
+        :meth:`sample` does. Returns ``(t_starts, t_ends, counts)``."""
+        return march_rays_window(rays_o, rays_d, state, window, self.aabb, self.bitfield, self.resolution, near, far,
+                                 step, max_samples_per_ray, contract=contract, occupied_box=self.occupied_box(),
+                                 occupied_blocks=self.occupied_blocks())
 
     def occupied_fraction(self) -> float:
         """Fraction of cells currently marked occupied, in [0, 1]."""

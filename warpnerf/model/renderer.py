@@ -4,14 +4,14 @@ Data flow of one batch (DESIGN §2):
 
     c2w, pixels --pixel_rays--> o, d           torch, differentiable w.r.t. c2w (pose task)
     o, d --ray_space.apply--> o, d              torch: the scene's ray space (DESIGN §6)
-    o, d --march_rays--> packed (ray, t0, t1)   Warp, occupancy-grid skipping, no gradient
+    o, d --occupancy.sample--> packed (ray, t0, t1)   Warp march through the grid, no gradient
     x = to_field(o[ray] + t_mid d[ray])         torch, differentiable w.r.t. o and d (contraction
                                                 for unbounded scenes, else the identity)
     field(x, d, level weights) -> sigma, rgb    Warp hash grid + torch MLPs
     composite_rays -> rgb, opacity, depth       Warp, hand-written backward
 
 Rendering an image (no autograd) instead marches every ray a few samples at a time
-(``march_rays_window``), composites in torch and drops rays once they are opaque
+(``OccupancyGrid.march_window``), composites in torch and drops rays once they are opaque
 (``Renderer.render_rays_in_rounds``).
 """
 
@@ -27,7 +27,7 @@ from warpnerf.geometry.rayspace import RaySpace
 from warpnerf.model.losses import distortion_loss, packed_weights
 from warpnerf.model.occupancy import OccupancyGrid
 from warpnerf.ops.composite import TRANSMITTANCE_EPS, active_sample_counts, composite_rays
-from warpnerf.ops.raymarch import MarchState, PackedSamples, march_rays_window, march_rays_within_budget, prefix_rows
+from warpnerf.ops.raymarch import MarchState, PackedSamples, prefix_rows
 
 
 def gather_rows(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -88,7 +88,8 @@ class Renderer:
     Args:
         field: module with ``geometry(x, level_weights) -> (sigma, features)`` and
             ``color(features, dirs) -> rgb``.
-        occupancy: the grid whose bitfield the marcher skips empty space with.
+        occupancy: the grid the rays are marched through (:meth:`OccupancyGrid.sample`,
+            :meth:`OccupancyGrid.march_window`): it skips the empty space it knows of.
         ray_space: the scene's :class:`~warpnerf.geometry.rayspace.RaySpace`: world rays are mapped
             by ``ray_space.apply`` and marched from its ``near`` to its ``far`` (DESIGN §6); the
             field sees positions in that space, while the color MLP still gets the world directions.
@@ -134,12 +135,10 @@ class Renderer:
         view_dirs = rays_d
         o, d = self.ray_space.apply(rays_o, rays_d)
         with torch.no_grad():
-            packed, n_marched = march_rays_within_budget(
-                o.detach().contiguous(), d.detach().contiguous(), self.occupancy.aabb, self.occupancy.bitfield,
-                self.occupancy.resolution, self.near, self.far, self.step, self.max_samples_per_ray, jitter,
-                max_total_samples=self.sample_budget, contract=self.ray_space.is_contracted,
-                # same samples, fewer empty steps: only near the occupied cells, across empty blocks
-                occupied_box=self.occupancy.occupied_box(), occupied_blocks=self.occupancy.occupied_blocks())
+            packed, n_marched = self.occupancy.sample(
+                o.detach().contiguous(), d.detach().contiguous(), self.near, self.far, self.step,
+                self.max_samples_per_ray, jitter, max_total_samples=self.sample_budget,
+                contract=self.ray_space.is_contracted)
         n_samples = int(packed.ray_indices.shape[0])
         known = None
         if (self.compact_training if compact is None else compact) and torch.is_grad_enabled() and n_samples:
@@ -219,7 +218,7 @@ class Renderer:
         (instant-ngp's inference loop: early ray termination with compaction).
 
         Round after round, every ray still alive takes its next ``window`` samples
-        (:func:`~warpnerf.ops.raymarch.march_rays_window`; ``window`` grows as rays die so a
+        (:meth:`~warpnerf.model.occupancy.OccupancyGrid.march_window`; ``window`` grows as rays die so a
         round holds about ``round_samples`` samples), the field is evaluated there, the samples
         are composited onto the ray's running colour, and rays whose transmittance fell below
         ``stop_transmittance`` (or that have no samples left) leave. Samples behind that point
@@ -230,10 +229,6 @@ class Renderer:
         o, d = self.ray_space.apply(rays_o, rays_d)
         o, d = o.contiguous(), d.contiguous()
         num, dev = o.shape[0], o.device
-        occ = self.occupancy
-        march = (occ.aabb, occ.bitfield, occ.resolution, self.near, self.far, self.step, self.max_samples_per_ray)
-        # rays march only near the occupied cells, across empty blocks of cells (same samples)
-        skip = dict(occupied_box=occ.occupied_box(), occupied_blocks=occ.occupied_blocks())
         rgb = torch.zeros(num, 3, device=dev)
         opacity = torch.zeros(num, device=dev)
         depth = torch.zeros(num, device=dev)
@@ -244,8 +239,9 @@ class Renderer:
         while alive.numel():
             n_alive = alive.numel()
             window = max(1, min(self.round_samples // n_alive, self.max_window))
-            t_starts, t_ends, counts = march_rays_window(o, d, state, window, *march,
-                                                         contract=self.ray_space.is_contracted, **skip)
+            t_starts, t_ends, counts = self.occupancy.march_window(o, d, state, window, self.near, self.far, self.step,
+                                                                   self.max_samples_per_ray,
+                                                                   contract=self.ray_space.is_contracted)
             rows, cols = torch.nonzero(torch.arange(window, device=dev) < counts[:, None], as_tuple=True)
             if rows.numel():
                 n_samples += rows.numel()
