@@ -118,17 +118,30 @@ def test_openmp_wait_defaults_and_their_description(monkeypatch):
     assert openmp.describe() == "OMP_WAIT_POLICY=PASSIVE GOMP_SPINCOUNT=10000"
 
 
-def test_twin_swap_replaces_the_ops_the_renderer_calls():
-    """bench step's torch arm must swap the names the renderer really uses (it broke silently once,
-    when the renderer moved to march_rays_within_budget)."""
-    from warpnerf.model import encoders, renderer
+def test_twin_arm_runs_every_op_of_a_render_on_its_twin(monkeypatch):
+    """bench step's torch arm is warpnerf.ops.use_backend("torch"): the ops a renderer calls (it broke
+    silently once, when bench swapped names by hand and the renderer moved to march_rays_within_budget)
+    reach their twins, and the Warp ops come back afterwards."""
+    from warpnerf.model.occupancy import OccupancyGrid
+    from warpnerf.ops import current_backend, registry
 
-    names = [(encoders, "hashgrid_encode"), (renderer, "march_rays_within_budget"), (renderer, "composite_rays")]
-    before = [getattr(m, n) for m, n in names]
+    calls = []
+    for op_module, name in registry.OPS:
+        module = registry.TWIN_MODULES[getattr(op_module, name).__twin__[0]]
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _real=real, _name=name, **k: calls.append(_name) or _real(*a, **k))
+    grid = OccupancyGrid((-1, -1, -1, 1, 1, 1), resolution=4, warmup_steps=1)
+    rays = torch.tensor([[0.0, 0.0, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]])
     with bench._twin_ops():
-        during = [getattr(m, n) for m, n in names]
-    assert all(a is not b for a, b in zip(before, during))
-    assert [getattr(m, n) for m, n in names] == before
+        assert current_backend() == "torch"
+        grid.update(0, lambda x: (x.norm(dim=-1) < 0.5).float(), torch.Generator().manual_seed(0))
+        packed, _ = grid.sample(*rays, 0.0, 10.0, 0.1, max_total_samples=100)
+    assert current_backend() == "warp"
+    assert {"occupancy_sample_points", "occupancy_scatter_max", "occupancy_ema", "occupancy_bitfield",
+            "march_rays_within_budget"} <= set(calls)
+    n = len(calls)
+    grid.sample(*rays, 0.0, 10.0, 0.1)
+    assert len(calls) == n and packed.t_starts.numel() > 0
 
 
 def test_render_bench_times_test_views_of_a_run(chair_run):

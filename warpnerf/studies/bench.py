@@ -11,7 +11,6 @@ for the field's MLPs, and the fraction of each that the op reaches.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import statistics
 import time
@@ -23,15 +22,13 @@ from warpnerf import device as devmod
 from warpnerf import openmp
 from warpnerf.kernels import roofline as roofline_kernels
 from warpnerf.kernels.roofline import GATHERS_PER_THREAD
-from warpnerf.model import encoders, renderer
 from warpnerf.model.encoders import HashGridEncoder
 from warpnerf.ops.cpgrid import CPGridSpec, cpgrid_encode, init_cp_lines
 from warpnerf.ops.hashgrid import HashGridSpec, hashgrid_encode
 from warpnerf.ops.launch import as_warp, launch, load_here
-from warpnerf.ops.reference import composite as twin_composite
 from warpnerf.ops.reference import cpgrid as twin_cpgrid
 from warpnerf.ops.reference import hashgrid as twin_hashgrid
-from warpnerf.ops.reference import raymarch as twin_raymarch
+from warpnerf.ops.registry import use_backend
 from warpnerf.runs.folder import load_run, load_scene_for
 from warpnerf.train.config import build_config
 from warpnerf.train.metrics import psnr
@@ -327,19 +324,9 @@ def format_encoding(res: dict) -> str:
 
 
 def _twin_ops():
-    """Context manager that swaps every Warp op used by a training step for its torch twin."""
-    @contextlib.contextmanager
-    def swap():
-        saved = (encoders.hashgrid_encode, renderer.march_rays_within_budget, renderer.composite_rays)
-        encoders.hashgrid_encode = twin_hashgrid.hashgrid_encode
-        renderer.march_rays_within_budget = twin_raymarch.march_rays_within_budget
-        renderer.composite_rays = twin_composite.composite_rays
-        try:
-            yield
-        finally:
-            encoders.hashgrid_encode, renderer.march_rays_within_budget, renderer.composite_rays = saved
-
-    return swap()
+    """Context manager that runs every op of a training step (every public op of
+    :mod:`warpnerf.ops`) on its torch twin: :func:`warpnerf.ops.use_backend` ``("torch")``."""
+    return use_backend("torch")
 
 
 def bench_step(repeats: int = 10, warmup_steps: int = 200, device: str = "cpu", data_root: str | None = None,
