@@ -49,7 +49,7 @@ def test_registry_lists_every_kernel_file():
 
 
 def test_every_kernel_compiles_for_gpu_architectures():
-    wp = _warp()
+    _warp()
     from warpnerf.ops.registry import kernel_modules
 
     archs = target_archs()

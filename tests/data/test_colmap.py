@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf.data import DatasetError, builtin, load_blender
+from warpnerf.data import builtin, load_blender
 from warpnerf.data import colmap as cm
 from warpnerf.data.colmap import load_colmap
 from warpnerf.data.normalize import normalization_from_cameras

@@ -1,6 +1,7 @@
 """warpnerf.geometry.rayspace: every scene owns its ray space; NDC is bit-identical to the formula the
 trainer and renderer used before the ray space existed; the euclidean space leaves rays alone."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -174,5 +175,6 @@ def test_bad_ray_spaces_are_refused():
         RaySpace.contracted(0.1, scale=0.0)
     with pytest.raises(ValueError, match="focal, width, height"):
         RaySpace(kind="ndc")
-    with pytest.raises(Exception):  # frozen: the scene's space cannot drift from what the loader made
+    # frozen: the scene's space cannot drift from what the loader made
+    with pytest.raises(dataclasses.FrozenInstanceError):
         RaySpace().near = 1.0

@@ -1,5 +1,6 @@
 """The G²fR level mask (paper eq. 15) with the 0-based ramp: w_1 = 1, level i ramps over i-1 <= tau < i."""
 
+import dataclasses
 import math
 
 import pytest
@@ -89,7 +90,7 @@ def test_level_weights_is_an_immutable_host_value():
     assert w.values == (1.0, 0.25, 0.0) and w.active == (0, 1) and len(w) == 3 and list(w) == [1.0, 0.25, 0.0]
     assert w.to("cuda") is w  # lives on no device: moving it is a no-op, never a copy
     assert torch.equal(w.as_tensor(), torch.tensor([1.0, 0.25, 0.0]))
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         w.values = (0.0,)
     for bad in ((1.0, 2.0), (float("nan"),), (-0.1,)):
         with pytest.raises(ValueError, match=r"\[0, 1\]"):

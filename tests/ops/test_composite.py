@@ -34,7 +34,7 @@ def test_forward_matches_twin(seed, per_ray_background):
     # measured max abs error over seeds 0-9: rgb 2.4e-7, opacity 1.8e-7, weights 6.0e-8 (values <= 1),
     # depth 9.5e-7 (values <= 6); float32 sums in a different order
     for name, a, b, atol in zip(("rgb", "opacity", "depth", "weights"), out, ref, (1e-6, 1e-6, 4e-6, 1e-6)):
-        torch.testing.assert_close(a, b, atol=atol, rtol=0, msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(a, b, atol=atol, rtol=0, msg=lambda m, name=name: f"{name}: {m}")
     # the cases this test is about really occur: early termination and empty rays
     weights = out[3]
     terminated = (weights == 0) & (sigmas > 0)

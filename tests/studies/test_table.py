@@ -125,7 +125,7 @@ def test_several_seeds_give_means_and_the_per_seed_gap():
     import statistics
 
     from warpnerf.cli.app import build_parser
-    from warpnerf.studies.sweep import RunResult, SweepSpec, expand
+    from warpnerf.studies.sweep import RunResult, expand
     from warpnerf.studies.table import table_spec
     from warpnerf.studies.tables import tables_markdown
 

@@ -1,8 +1,6 @@
 """Re-registration of training views left in a wrong basin (warpnerf/train/reregister.py), on a field
 trained with known poses: the search must bring a far-off view back and leave the others alone."""
 
-import math
-
 import pytest
 import torch
 

@@ -25,7 +25,6 @@ Units and conventions (used throughout):
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import dataclass, field
 from typing import Callable
 

@@ -58,7 +58,8 @@ def refine_corrections(trainer: "Trainer", corr: "PoseCorrection", c2w: torch.Te
         opt.zero_grad(set_to_none=True)
         # every ray rendered, in as many calls as the sample budget needs (one call for 25 lego views
         # x 1024 rays left the last views' rays unrendered, those poses drifting)
-        chunks = trainer.renderer.render_pixels(lambda first: corr.for_rays(c2w, idx[first:]), u, v, intrinsics, weights)
+        chunks = trainer.renderer.render_pixels(lambda first, idx=idx: corr.for_rays(c2w, idx[first:]), u, v,
+                                                intrinsics, weights)  # idx=idx: this step's pixels
         for first, out in chunks:
             loss = (out - rgb[first:first + out.shape[0]]).square().sum() / (3 * per_row)
             loss.backward()
