@@ -44,6 +44,25 @@ MAX_STEPS_PER_RAY = 65536
 MAX_STEPS = wp.constant(MAX_STEPS_PER_RAY)
 
 
+@wp.struct
+class MarchGrid:
+    """The occupancy grid as the marchers read it (``warpnerf/ops/raymarch.py`` ``_march_grid``).
+
+    Cell layout as in ``kernels/occupancy.py``; the box around the occupied cells and the block
+    bits only let the uniform marches skip candidates that are never samples (the contracted
+    march reads the first four fields only)."""
+
+    aabb_min: wp.vec3  # the box the grid covers
+    aabb_max: wp.vec3
+    grid_scale: wp.vec3  # res / (aabb_max - aabb_min)
+    bitfield: wp.array(dtype=wp.uint8)  # (res^3,) 1 = occupied
+    res: int
+    box_min: wp.vec3  # a box holding every occupied cell (the scene box when unknown)
+    box_max: wp.vec3
+    blocks: wp.array(dtype=wp.uint8)  # (ceil(res / block)^3,) 1 = some cell of the block occupied
+    block: int
+
+
 @wp.func
 def finite3(v: wp.vec3):
     return wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])
@@ -151,19 +170,11 @@ def march_rays(
     rays_d: wp.array(dtype=wp.vec3),
     jitter: wp.array(dtype=float),
     has_jitter: int,
-    aabb_min: wp.vec3,
-    aabb_max: wp.vec3,
-    grid_scale: wp.vec3,
-    occ_bitfield: wp.array(dtype=wp.uint8),
-    res: int,
+    grid: MarchGrid,
     near: float,
     far: float,
     step: float,
     max_samples: int,
-    box_min: wp.vec3,
-    box_max: wp.vec3,
-    blocks: wp.array(dtype=wp.uint8),
-    block: int,
     fill: int,
     ray_offsets: wp.array(dtype=wp.int32),
     ray_counts: wp.array(dtype=wp.int32),
@@ -174,9 +185,18 @@ def march_rays(
     """Count (``fill`` = 0: writes ray_counts) or emit (``fill`` = 1: writes the packed samples
     at ray_offsets) the samples of rays [first_ray, first_ray + dim).
 
-    Only candidates near the box ``[box_min, box_max]`` holding every occupied cell (the scene
-    box when unknown) are visited, as in :func:`march_rays_window`: the same samples, without
+    Only candidates near the box ``[grid.box_min, grid.box_max]`` holding every occupied cell (the
+    scene box when unknown) are visited, as in :func:`march_rays_window`: the same samples, without
     stepping through the empty rest of the scene box."""
+    aabb_min = grid.aabb_min
+    aabb_max = grid.aabb_max
+    grid_scale = grid.grid_scale
+    occ_bitfield = grid.bitfield
+    res = grid.res
+    box_min = grid.box_min
+    box_max = grid.box_max
+    blocks = grid.blocks
+    block = grid.block
     r = first_ray + wp.tid()
     o = rays_o[r]
     d = rays_d[r]
@@ -244,10 +264,7 @@ def march_rays_contracted(
     rays_d: wp.array(dtype=wp.vec3),
     jitter: wp.array(dtype=float),
     has_jitter: int,
-    aabb_min: wp.vec3,
-    grid_scale: wp.vec3,
-    occ_bitfield: wp.array(dtype=wp.uint8),
-    res: int,
+    grid: MarchGrid,
     near: float,
     far: float,
     step: float,
@@ -261,6 +278,10 @@ def march_rays_contracted(
 ):
     """:func:`march_rays` for contracted unbounded scenes (module doc): [near, far] in the
     normalised world, growing steps, occupancy looked up at the contracted sample midpoint."""
+    aabb_min = grid.aabb_min
+    grid_scale = grid.grid_scale
+    occ_bitfield = grid.bitfield
+    res = grid.res
     r = first_ray + wp.tid()
     o = rays_o[r]
     d = rays_d[r]
@@ -292,20 +313,12 @@ def march_rays_window(
     rays_o: wp.array(dtype=wp.vec3),
     rays_d: wp.array(dtype=wp.vec3),
     contract: int,
-    aabb_min: wp.vec3,
-    aabb_max: wp.vec3,
-    grid_scale: wp.vec3,
-    occ_bitfield: wp.array(dtype=wp.uint8),
-    res: int,
+    grid: MarchGrid,
     near: float,
     far: float,
     step: float,
     max_samples: int,
     window: int,
-    box_min: wp.vec3,
-    box_max: wp.vec3,
-    blocks: wp.array(dtype=wp.uint8),
-    block: int,
     ray_k: wp.array(dtype=wp.int32),
     ray_t: wp.array(dtype=float),
     ray_taken: wp.array(dtype=wp.int32),
@@ -322,8 +335,18 @@ def march_rays_window(
     finished: past its interval, out of steps, or ``max_samples`` taken), ``ray_t`` the next
     sample's start (contracted march only; the uniform one recomputes it from k), ``ray_taken``
     the samples emitted so far. Writes ``counts[r]`` samples at ``[r * window, ...)``. The uniform
-    march only visits candidates near the box ``[box_min, box_max]`` holding every occupied cell
-    (the scene box when unknown): the same samples, without stepping through the empty rest."""
+    march only visits candidates near the box ``[grid.box_min, grid.box_max]`` holding every
+    occupied cell (the scene box when unknown): the same samples, without stepping through the
+    empty rest."""
+    aabb_min = grid.aabb_min
+    aabb_max = grid.aabb_max
+    grid_scale = grid.grid_scale
+    occ_bitfield = grid.bitfield
+    res = grid.res
+    box_min = grid.box_min
+    box_max = grid.box_max
+    blocks = grid.blocks
+    block = grid.block
     r = first_ray + wp.tid()
     k = int(ray_k[r])
     n = int(0)

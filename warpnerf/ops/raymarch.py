@@ -153,27 +153,21 @@ def march_rays_within_budget(
     from warpnerf.kernels import raymarch as kernels  # lazy: Warp loads with the first launch, not with the op's module
 
     kernel = kernels.march_rays_contracted if contract else kernels.march_rays
-    grid_scale = [res / (h - l) for l, h in zip(lo, hi)]
     jitter_t = jitter if jitter is not None else empty_f.new_zeros(1)
     offsets = torch.zeros(num_rays, dtype=torch.int32, device=device)
-    box = [wp.vec3(*lo)] if contract else [wp.vec3(*lo), wp.vec3(*hi)]
-    # the uniform march visits only candidates near the occupied cells' box (same samples)
-    tight = [] if contract else [wp.vec3(*v) for v in _padded_box(occupied_box, lo, hi)] + _block_args(
-        occupied_blocks, res, device)
+    # the uniform march visits only candidates near the occupied cells' box, across empty blocks (same samples)
+    grid = _march_grid(kernels, lo, hi, res, occ_bitfield, None if contract else occupied_box,
+                       None if contract else occupied_blocks, device)
     head = [
         as_warp(rays_o, wp.vec3),
         as_warp(rays_d, wp.vec3),
         as_warp(jitter_t),
         int(jitter is not None),
-        *box,
-        wp.vec3(*grid_scale),
-        as_warp(occ_bitfield, wp.uint8),
-        res,
+        grid,
         near,
         far,
         step_size,
         int(max_samples_per_ray),
-        *tight,
     ]
     ws_counts = as_warp(counts)
     ws_offsets = as_warp(offsets)
@@ -203,9 +197,24 @@ def march_rays_within_budget(
     return PackedSamples(ray_indices, t_starts, t_ends, offsets, counts), keep
 
 
+def _march_grid(kernels, lo: list, hi: list, res: int, occ_bitfield: torch.Tensor, occupied_box, occupied_blocks,
+                device):
+    """The kernels' ``MarchGrid``: the grid's box, scale, bitfield and resolution, the box around its
+    occupied cells (:func:`_padded_box`) and the empty-block bits (:func:`_block_args`)."""
+    wp = init_warp()
+    grid = kernels.MarchGrid()
+    grid.aabb_min, grid.aabb_max = wp.vec3(*lo), wp.vec3(*hi)
+    grid.grid_scale = wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)])
+    grid.bitfield, grid.res = as_warp(occ_bitfield, wp.uint8), int(res)
+    box_lo, box_hi = _padded_box(occupied_box, lo, hi)
+    grid.box_min, grid.box_max = wp.vec3(*box_lo), wp.vec3(*box_hi)
+    grid.blocks, grid.block = _block_args(occupied_blocks, res, device)
+    return grid
+
+
 def _block_args(occupied_blocks, res: int, device) -> list:
-    """Kernel arguments (blocks, block) of the empty-block skip: ``occupied_blocks`` (b, blocks)
-    as :meth:`~warpnerf.model.occupancy.OccupancyGrid.occupied_blocks` returns it, or one occupied
+    """(blocks, block) of the empty-block skip: ``occupied_blocks`` (b, blocks) as
+    :meth:`~warpnerf.model.occupancy.OccupancyGrid.occupied_blocks` returns it, or one occupied
     block covering the grid (nothing is skipped)."""
     wp = init_warp()
     if occupied_blocks is None:
@@ -292,7 +301,6 @@ def march_rays_window(
         if v.dtype != dtype or tuple(v.shape) != (num_rays,) or v.device != device or not v.is_contiguous():
             raise ValueError(f"march_rays_window: state.{name} must be a contiguous ({num_rays},) {dtype} tensor "
                              f"on {device}, got {tuple(v.shape)} {v.dtype} on {v.device}")
-    box_lo, box_hi = _padded_box(None if contract else occupied_box, lo, hi)
     counts = torch.zeros(num_rays, dtype=torch.int32, device=device)
     t_starts = torch.empty(num_rays, window, dtype=torch.float32, device=device)
     t_ends = torch.empty(num_rays, window, dtype=torch.float32, device=device)
@@ -304,11 +312,10 @@ def march_rays_window(
     wp = init_warp()
     from warpnerf.kernels import raymarch as kernels  # lazy: Warp loads with the first launch, not with the op's module
 
-    inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract),
-              wp.vec3(*lo), wp.vec3(*hi), wp.vec3(*[res / (h - l) for l, h in zip(lo, hi)]),
-              as_warp(occ_bitfield, wp.uint8), res, near, far, step_size, int(max_samples_per_ray), window,
-              wp.vec3(*box_lo), wp.vec3(*box_hi), *_block_args(None if contract else occupied_blocks, res, device),
-              as_warp(state.k), as_warp(state.t), as_warp(state.taken), as_warp(counts),
+    grid = _march_grid(kernels, lo, hi, res, occ_bitfield, None if contract else occupied_box,
+                       None if contract else occupied_blocks, device)
+    inputs = [as_warp(rays_o.contiguous(), wp.vec3), as_warp(rays_d.contiguous(), wp.vec3), int(contract), grid,
+              near, far, step_size, int(max_samples_per_ray), window, as_warp(state.k), as_warp(state.t), as_warp(state.taken), as_warp(counts),
               as_warp(t_starts.view(-1)), as_warp(t_ends.view(-1))]
     launch_over_rays(kernels.march_rays_window, num_rays, inputs, device)
     return t_starts, t_ends, counts
