@@ -340,7 +340,7 @@ def _check_march(rays_o, aabb, occ_bitfield, occ_resolution, near, far, step_siz
     if contract and far == float("inf"):
         raise ValueError("march_rays: a contracted march needs a finite far bound")
     # contracted: steps of one step_size along the line's contracted image, a few units long
-    # (up to 4.2 measured on random rays, tests/test_raymarch.py); 8 leaves room
+    # (up to 4.2 measured on random rays, tests/ops/test_raymarch.py); 8 leaves room
     diagonal = 8.0 if contract else sum((h - l) ** 2 for l, h in zip(lo, hi)) ** 0.5
     if diagonal / step_size > MAX_STEPS_PER_RAY:
         raise ValueError(f"march_rays: step_size {step_size} needs more than {MAX_STEPS_PER_RAY} steps along the box "

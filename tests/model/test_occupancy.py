@@ -152,3 +152,33 @@ def test_occupied_box_bounds_the_occupied_cells():
     size = (hi - lo) / res
     want = (lo + size * torch.tensor([2, 3, 1])).tolist() + (lo + size * torch.tensor([5, 6, 7])).tolist()
     assert grid.occupied_box() == pytest.approx(want)
+
+
+def test_the_grid_marches_with_its_own_box_bitfield_and_skips():
+    """OccupancyGrid.sample / .march_window are the ops' marches given the grid's own arguments:
+    the same samples as spelling them out, with and without the empty-space skips."""
+    from warpnerf.ops.raymarch import MarchState, march_rays_window, march_rays_within_budget
+
+    grid = OccupancyGrid(AABB, resolution=16)
+    grid.update(0, ball, generator=torch.Generator().manual_seed(3))
+    g = torch.Generator().manual_seed(4)
+    o = CENTRE + torch.randn(300, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])
+    d = torch.nn.functional.normalize(CENTRE + torch.randn(300, 3, generator=g) * 0.5 - o, dim=-1)
+    jitter = torch.rand(300, generator=g)
+    got, n = grid.sample(o, d, 0.0, 10.0, 0.01, 64, jitter, max_total_samples=3000)
+    for skips in ({}, dict(occupied_box=grid.occupied_box(), occupied_blocks=grid.occupied_blocks())):
+        want, m = march_rays_within_budget(o, d, grid.aabb, grid.bitfield, grid.resolution, 0.0, 10.0, 0.01, 64,
+                                           jitter, max_total_samples=3000, **skips)
+        assert n == m and all(torch.equal(a, b) for a, b in zip(got, want))
+    assert 0 < n < 300 and got.t_starts.numel() > 1000
+    # the skips change where a ray's state resumes (k), never its samples; with them, the state too
+    skips = dict(occupied_box=grid.occupied_box(), occupied_blocks=grid.occupied_blocks())
+    s1, s2, s3 = (MarchState.start(300, 0.0, "cpu") for _ in range(3))
+    for _ in range(3):
+        w1 = grid.march_window(o, d, s1, 8, 0.0, 10.0, 0.01, 64)
+        w2 = march_rays_window(o, d, s2, 8, grid.aabb, grid.bitfield, grid.resolution, 0.0, 10.0, 0.01, 64)
+        w3 = march_rays_window(o, d, s3, 8, grid.aabb, grid.bitfield, grid.resolution, 0.0, 10.0, 0.01, 64, **skips)
+        keep = torch.arange(8) < w1[2][:, None]
+        for w in (w2, w3):
+            assert torch.equal(w1[2], w[2]) and torch.equal(w1[0][keep], w[0][keep]) and torch.equal(w1[1][keep], w[1][keep])
+        assert torch.equal(s1.taken, s2.taken) and all(torch.equal(a, b) for a, b in zip(s1, s3))
