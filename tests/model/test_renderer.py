@@ -165,7 +165,7 @@ def test_density_of_is_the_geometry_density_and_its_gradient():
         if b is None or not b.any():  # the colour MLP and the geometry features' rows
             assert a is None or not a.any(), i
             continue
-        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max()), msg=lambda m: f"{i}: {m}")
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6 * float(b.abs().max()), msg=lambda m, i=i: f"{i}: {m}")
 
 
 class WithoutGeometryOf(torch.nn.Module):
@@ -236,7 +236,7 @@ def test_training_compaction_keeps_pixels_and_gradients(field_kind):
             continue
         scale = float(b.abs().max())
         assert scale > 0, i
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-5 * scale, msg=lambda m: f"parameter {i}: {m}")
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-5 * scale, msg=lambda m, i=i: f"parameter {i}: {m}")
 
 
 def test_render_pixels_renders_every_pixel_within_the_sample_budget():

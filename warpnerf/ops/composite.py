@@ -105,7 +105,7 @@ def active_sample_counts(
     num_rays = ray_offsets.shape[0]
     counts = torch.zeros(num_rays, dtype=torch.int32, device=sigmas.device)
     if num_rays:
-        wp = init_warp()
+        init_warp()
         from warpnerf.kernels.composite import composite_active_counts  # lazy: Warp loads with the first launch, not with the op's module
 
         sigmas, t_starts, t_ends = (t.detach().contiguous() for t in (sigmas, t_starts, t_ends))

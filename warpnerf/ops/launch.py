@@ -265,7 +265,7 @@ class GridLauncher:
 
     def forward(self, x: torch.Tensor, params: torch.Tensor, values: tuple[float, ...]) -> torch.Tensor:
         """(N, D) points, detached parameters, host weights -> (N, L * F) features."""
-        spec, n = self.spec, x.shape[0]
+        n = x.shape[0]
         n_levels, n_features = len(values), self.vec._length_
         out = torch.zeros(n, n_levels, n_features, dtype=x.dtype, device=x.device)
         active = tuple(m for m, w in enumerate(values) if w > 0.0)
