@@ -5,6 +5,8 @@ Layout (written by :func:`warpnerf.runs.run.run_training`)::
     config.toml       resolved configuration (:func:`write_config`, :func:`read_run_config`)
     metrics.json      written last: its presence (with ``config_hash``) marks the run finished
     checkpoint.pt     full training state, read only through :func:`read_checkpoint`
+    .warpnerf-run     marker: warpnerf created this folder (``--overwrite`` removes only marked folders)
+    .warpnerf-lock    pid and host of the process training into the folder (:class:`RunLock`)
 
 Every checkpoint read goes through :func:`warpnerf.train.checkpoint.load_checkpoint`
 (``torch.load(..., weights_only=True)`` plus its format and truncation checks), so a foreign file
@@ -17,13 +19,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import socket
 from typing import Optional
 
 import tomli_w
 
 from warpnerf import device as devmod
-from warpnerf.data.resolve import load_scene
-from warpnerf.train.checkpoint import atomic_write_text, load_checkpoint
+from warpnerf.data.resolve import data_root_from, load_scene
+from warpnerf.train.checkpoint import CheckpointError, atomic_write_text, load_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, build_config, load_toml
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer
@@ -31,6 +34,9 @@ from warpnerf.train.trainer import Trainer
 CONFIG = "config.toml"
 METRICS = "metrics.json"
 CHECKPOINT = "checkpoint.pt"
+MARKER = ".warpnerf-run"
+LOCK = ".warpnerf-lock"
+_BOOKKEEPING = (MARKER, LOCK)  # files of ours that do not make a folder a run
 
 RESULT_NEUTRAL_KEYS = ("out", "device", "threads")  # change where/how fast a run goes, not its numbers
 
@@ -94,12 +100,158 @@ def folder_state(out_dir: str) -> str:
         return "absent"
     if not os.path.isdir(out_dir):
         return "foreign"
-    names = [n for n in os.listdir(out_dir) if not n.startswith(".tmp-")]
+    names = [n for n in os.listdir(out_dir) if not n.startswith(".tmp-") and n not in _BOOKKEEPING]
     if not names:
         return "empty"
     if CONFIG not in names:
         return "foreign"
     return "finished" if read_metrics(out_dir) is not None else "unfinished"
+
+
+def is_marked(out_dir: str) -> bool:
+    """Whether warpnerf created ``out_dir`` (it holds the :data:`MARKER` file). Folders written
+    before the marker existed are still read and resumed, but ``--overwrite`` does not remove them."""
+    return os.path.isfile(os.path.join(out_dir, MARKER))
+
+
+def write_marker(out_dir: str) -> None:
+    path = os.path.join(out_dir, MARKER)
+    if not os.path.exists(path):
+        atomic_write_text(path, "warpnerf run folder: --overwrite may remove this folder\n")
+
+
+def clear_run_folder(out_dir: str) -> None:
+    """Empty a marked run folder for ``--overwrite``, keeping the marker and the lock of the
+    process that is about to train into it. Refuses (ConfigError) a folder without the marker."""
+    import shutil  # lazy: only --overwrite needs it
+
+    if not os.path.isdir(out_dir):
+        return
+    if not is_marked(out_dir):
+        raise ConfigError(f"run folder {out_dir} was not created by warpnerf (no {MARKER}); --overwrite removes only "
+                          "folders warpnerf made: remove it yourself or choose another --out")
+    for name in os.listdir(out_dir):
+        if name in _BOOKKEEPING:
+            continue
+        path = os.path.join(out_dir, name)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        else:
+            os.unlink(path)
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    except OSError:
+        return False
+    return True
+
+
+class RunLock:
+    """``out_dir/.warpnerf-lock``: one training process per run folder.
+
+    :meth:`acquire` creates the folder if needed and the lock file with ``O_CREAT | O_EXCL``
+    (atomic: of two processes exactly one wins), holding ``pid host``. A lock whose process is no
+    longer alive on this host is stale and taken over (``self.note`` says so); a live one, or one
+    from another host, raises ConfigError. :meth:`release` removes the lock, and the folder too when
+    this lock created it and nothing else was written."""
+
+    def __init__(self, out_dir: str):
+        self.out_dir = out_dir
+        self.path = os.path.join(out_dir, LOCK)
+        self.held = False
+        self.created_dir = False
+        self.note: Optional[str] = None
+
+    @staticmethod
+    def owner(out_dir: str) -> Optional[tuple[int, str]]:
+        """(pid, host) in ``out_dir``'s lock, or None when there is none; (-1, "") when unreadable."""
+        try:
+            with open(os.path.join(out_dir, LOCK)) as fh:
+                parts = fh.read().split()
+        except FileNotFoundError:
+            return None
+        except OSError:
+            return (-1, "")
+        try:
+            return int(parts[0]), (parts[1] if len(parts) > 1 else "")
+        except (ValueError, IndexError):
+            return (-1, "")
+
+    @staticmethod
+    def live_owner(out_dir: str) -> Optional[str]:
+        """A description of the live process that holds ``out_dir``'s lock, or None (no lock, or stale)."""
+        owner = RunLock.owner(out_dir)
+        if owner is None:
+            return None
+        pid, host = owner
+        if host and host != socket.gethostname():
+            return f"process {pid} on host {host}"
+        if pid != os.getpid() and _pid_alive(pid):
+            return f"process {pid}"
+        return None
+
+    def _busy(self, who: str) -> ConfigError:
+        return ConfigError(f"run folder {self.out_dir} is in use by {who} (lock {self.path}); wait for it, or "
+                           "delete the lock if that process is gone")
+
+    def acquire(self) -> "RunLock":
+        if not os.path.isdir(self.out_dir):
+            try:
+                os.makedirs(self.out_dir)
+                self.created_dir = True
+            except FileExistsError:
+                pass
+        text = f"{os.getpid()} {socket.gethostname()}\n"
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                who = self.live_owner(self.out_dir)
+                if who is not None:
+                    self.release()
+                    raise self._busy(who) from None
+                pid = (self.owner(self.out_dir) or (-1, ""))[0]
+                self.note = f"took over the stale lock of process {pid} (no longer running) in {self.out_dir}"
+                try:  # a racing process may take it over too: only one of us gets the O_EXCL create after this
+                    os.unlink(self.path)
+                except FileNotFoundError:
+                    pass
+                continue
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+            self.held = True
+            return self
+        self.release()
+        raise self._busy("another process")
+
+    def release(self) -> None:
+        if self.held:
+            try:
+                if self.owner(self.out_dir) == (os.getpid(), socket.gethostname()):
+                    os.unlink(self.path)
+            except OSError:
+                pass
+            self.held = False
+        if self.created_dir:
+            try:
+                os.rmdir(self.out_dir)  # only when empty: nothing was written
+            except OSError:
+                pass
+            self.created_dir = False
+
+    def __enter__(self):
+        return self.acquire()
+
+    def __exit__(self, *exc):
+        self.release()
 
 
 def read_checkpoint(run_dir: str, map_location=None) -> dict:
@@ -113,6 +265,37 @@ def load_scene_for(cfg: TrainConfig, progress: bool = True):
     return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
                       builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
                       unbounded=cfg.unbounded)
+
+
+def resolve_data_root(cfg: TrainConfig) -> None:
+    """Record in ``cfg.data_root`` the data root ``$WARPNERF_DATA`` supplies when none was given,
+    so the run folder's config.toml reopens the same scene in a shell without that variable."""
+    if not cfg.data_root:
+        root = data_root_from(None)
+        if root:
+            cfg.data_root = root
+
+
+def check_scene(run_dir: str, scene, recorded: Optional[str]) -> None:
+    """ConfigError when ``scene`` (as the run's config resolves it now) comes from another source than
+    the one the run trained on (``recorded``: metrics.json's or the checkpoint's ``scene_source``),
+    e.g. a built-in scene of the same name because the data root is not set in this shell."""
+    if recorded and recorded != scene.source:
+        hint = ("pass --data-root (or set $WARPNERF_DATA) to the data it trained on" if scene.source == "builtin"
+                else "the data root now holds a scene of that name; unset it to use the built-in scene")
+        raise ConfigError(f"{run_dir} was trained on the {recorded} scene '{scene.name}', but '{scene.name}' now "
+                          f"resolves to the {scene.source} scene at {scene.root}; {hint}")
+
+
+def load_state_checked(trainer: Trainer, state: dict, run_dir: str) -> None:
+    """``trainer.load_state_dict(state)``; a checkpoint whose tensors do not fit this scene (another
+    view count or size) is a one-line CheckpointError instead of torch's size-mismatch traceback."""
+    try:
+        trainer.load_state_dict(state)
+    except (RuntimeError, KeyError, ValueError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{run_dir}/{CHECKPOINT} does not fit the scene '{trainer.scene.name}' as it resolves "
+                              f"now ({trainer.scene.source}, {trainer.scene.root}): {first[:200]}") from None
 
 
 def load_run(run_dir: str, device: str = "auto", progress: bool = False) -> Trainer:
@@ -130,6 +313,7 @@ def load_run(run_dir: str, device: str = "auto", progress: bool = False) -> Trai
     dev = devmod.resolve_device(cfg.device)
     state = read_checkpoint(run_dir, map_location=devmod.torch_device(dev))
     scene = load_scene_for(cfg, progress)
+    check_scene(run_dir, scene, (read_metrics(run_dir) or {}).get("scene_source") or state.get("scene_source"))
     trainer = Trainer(cfg, scene, make_task(cfg), dev)
-    trainer.load_state_dict(state)
+    load_state_checked(trainer, state, run_dir)
     return trainer

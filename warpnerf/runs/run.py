@@ -9,12 +9,13 @@ Run folder layout::
     renders/          test views (prediction | ground truth) and depth
     turntable.mp4     orbit video (spiral for forward-facing scenes); turntable.gif without imageio-ffmpeg
     training.png      loss / PSNR curves; pose runs add cameras.png and pose_error.png
+    .warpnerf-run     marker: warpnerf made this folder; ``--overwrite`` removes only marked folders
+    .warpnerf-lock    pid of the process training into the folder (removed when it ends)
 """
 
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import time
 from typing import Optional
@@ -22,9 +23,12 @@ from typing import Optional
 import torch
 
 from warpnerf import device as devmod
+from warpnerf.data.errors import DatasetError
 from warpnerf.runs import video
-from warpnerf.runs.folder import (CHECKPOINT, RESULT_NEUTRAL_KEYS, config_hash, folder_state, load_scene_for,
-                                  read_checkpoint, read_metrics, read_run_config, write_config)
+from warpnerf.runs.folder import (CHECKPOINT, MARKER, RESULT_NEUTRAL_KEYS, RunLock, check_scene, clear_run_folder,
+                                  config_hash, folder_state, is_marked, load_scene_for, load_state_checked,
+                                  read_checkpoint, read_metrics, read_run_config, resolve_data_root, write_config,
+                                  write_marker)
 from warpnerf.train import plots
 from warpnerf.train.checkpoint import _fault, save_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
@@ -70,8 +74,13 @@ def prepare_run(cfg: TrainConfig, overwrite: bool = False, resume: bool = False,
 
     Returns "fresh", "resume" or "finished" (a resumed run that has nothing left to do). Raises
     ConfigError when the folder holds another run, an unfinished run without ``resume``, a
-    finished run without ``overwrite``, or a changed config on resume without ``force``."""
+    finished run without ``overwrite``, a changed config on resume without ``force``, a folder
+    another live process is training into, or ``overwrite`` of a folder warpnerf did not create."""
     out_dir = cfg.run_dir()
+    who = RunLock.live_owner(out_dir) if os.path.isdir(out_dir) else None
+    if who is not None:
+        raise ConfigError(f"run folder {out_dir} is in use by {who} (lock {os.path.join(out_dir, '.warpnerf-lock')}); "
+                          "wait for it or choose another --out")
     state = folder_state(out_dir)
     if state == "foreign":
         raise ConfigError(f"run folder {out_dir} exists and is not a warpnerf run folder; choose another --out")
@@ -92,8 +101,19 @@ def prepare_run(cfg: TrainConfig, overwrite: bool = False, resume: bool = False,
     if state == "unfinished" and not overwrite:
         raise ConfigError(f"run folder {out_dir} holds an unfinished run; continue it with --resume {out_dir} "
                           "or replace it with --overwrite")
+    if state in ("finished", "unfinished") and not is_marked(out_dir):
+        raise ConfigError(f"run folder {out_dir} was not created by warpnerf (no {MARKER}); --overwrite removes only "
+                          "folders warpnerf made: remove it yourself or choose another --out")
     _check_writable(out_dir)
     return "fresh"
+
+
+class _Terminated(SystemExit):
+    """SIGTERM outside the training loop: unwind (releasing the run folder's lock) and exit 143."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated(128 + signum)
 
 
 def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = False, resume: bool = False,
@@ -111,7 +131,31 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     except ValueError as e:
         raise ConfigError(str(e)) from None
     _configure_lpips(cfg)
-    mode = prepare_run(cfg, overwrite, resume, force)
+    if not resume:  # a resumed run keeps what its config.toml says
+        try:
+            resolve_data_root(cfg)  # config.toml names the data, not "whatever $WARPNERF_DATA says"
+        except DatasetError as e:
+            raise ConfigError(str(e)) from None
+    prepare_run(cfg, overwrite, resume, force)  # fails before the folder is touched
+    lock = RunLock(cfg.run_dir()).acquire()  # atomic: of two runs into one folder, one gets here
+    installed = False
+    try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)  # unwind through the finally below
+        installed = True
+    except ValueError:  # not the main thread
+        previous = None
+    try:
+        if lock.note:
+            print(f"note: {lock.note}")
+        mode = prepare_run(cfg, overwrite, resume, force)  # again, now that no other run can change the folder
+        return _run_locked(cfg, mode, device, progress, overwrite)
+    finally:
+        if installed:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        lock.release()
+
+
+def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwrite: bool) -> dict:
     start_memory_window()  # this run's peak memory, not that of earlier runs in this process
     out_dir = cfg.run_dir()
     if mode == "finished":
@@ -123,13 +167,17 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     if mode == "resume" and os.path.exists(ckpt_path):  # a bad checkpoint fails before the scene loads
         state = read_checkpoint(out_dir, map_location="cpu")
     scene = load_scene_for(cfg, progress)
+    if mode == "resume":
+        check_scene(out_dir, scene, (state or {}).get("scene_source"))
     task = make_task(cfg)
     trainer = Trainer(cfg, scene, task, device)  # checks the view selection against the scene
     if state is not None:
-        trainer.load_state_dict(state)
-    if overwrite and os.path.isdir(out_dir):
-        shutil.rmtree(out_dir)
+        load_state_checked(trainer, state, out_dir)
+    if overwrite and mode == "fresh" and folder_state(out_dir) in ("finished", "unfinished"):
+        clear_run_folder(out_dir)  # marked folders only (prepare_run checked); keeps the lock
     os.makedirs(out_dir, exist_ok=True)
+    if mode == "fresh":
+        write_marker(out_dir)
     for name in os.listdir(out_dir):  # temp files of writes a crash cut short
         if name.startswith(".tmp-"):
             os.unlink(os.path.join(out_dir, name))
@@ -153,7 +201,8 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         stop.append(signum)
 
     def save() -> None:
-        save_checkpoint(ckpt_path, {**trainer.state_dict(), "config_hash": config_hash(cfg)})
+        save_checkpoint(ckpt_path, {**trainer.state_dict(), "config_hash": config_hash(cfg),
+                                    "scene_source": scene.source})  # view/render/eval compare it
 
     def checkpoint_due(n_done: int) -> bool:
         # save_every: for --resume; checkpoint_every: for 'warpnerf view' to follow the run
@@ -253,9 +302,10 @@ def evaluate_run(run_dir: str, progress: bool = True, device: Optional[str] = No
     if state.get("config_hash") != metrics["config_hash"]:
         raise ConfigError(f"{run_dir}/checkpoint.pt belongs to another configuration than {run_dir}/metrics.json")
     scene = load_scene_for(cfg, progress)
+    check_scene(run_dir, scene, metrics.get("scene_source") or state.get("scene_source"))
     task = make_task(cfg)
     trainer = Trainer(cfg, scene, task, dev)
-    trainer.load_state_dict(state)
+    load_state_checked(trainer, state, run_dir)
     os.makedirs(os.path.join(run_dir, "eval"), exist_ok=True)
     results = evaluate(trainer, os.path.join(run_dir, "eval"), progress)
     results.update(task.metrics(trainer))
