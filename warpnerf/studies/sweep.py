@@ -14,8 +14,11 @@ Backends:
   is streamed to the driver by Ray, results come back to the driver. ``pip install 'warpnerf[cluster]'``.
 
 Restartable: a run whose folder already holds a finished run of the identical configuration
-(``runs.folder.finished_metrics``) is skipped; a failing run is reported with a one-line error and
-retried up to ``retries`` times; the others carry on.
+(``runs.folder.finished_metrics``) is skipped; a finished run of another configuration is never
+replaced without ``overwrite`` (the sweep refuses before it starts, naming the changed keys); a
+failing run is reported with a one-line error and retried up to ``retries`` times; the others carry on.
+``out`` (and ``data_root``) are made absolute on the driver, so every worker writes where the driver
+looks, whatever its working directory; scene names cannot lead a run folder or log outside ``out``.
 
 Spec format (TOML; paths relative to the current directory, like command-line flags)::
 
@@ -201,8 +204,22 @@ def run_name(scene: str, task: str, model: str, arm: str, seed: int) -> str:
     return f"{scene}_{task}_{model}_{arm}_s{seed}"
 
 
+def _check_inside(out: str, path: str, what: str) -> None:
+    out_abs, path_abs = os.path.abspath(out), os.path.abspath(path)
+    if os.path.dirname(path_abs) != out_abs:
+        raise ConfigError(f"sweep spec: {what} would write {path} outside out {out}; scene names must be plain names "
+                          "(no / or ..)")
+
+
 def expand(spec: SweepSpec) -> list[Run]:
-    """All runs of ``spec`` (task-major, then model, scene, seed, arm: both arms of a row adjacent)."""
+    """All runs of ``spec`` (task-major, then model, scene, seed, arm: both arms of a row adjacent).
+
+    Raises ConfigError when a scene name would put a run folder anywhere but directly in ``spec.out``."""
+    for scene in spec.scenes:
+        if not isinstance(scene, str) or not scene or scene in (".", "..") or "/" in scene or "\\" in scene \
+                or (os.altsep and os.altsep in scene):
+            raise ConfigError(f"sweep spec: scene {scene!r} is not a plain name: its run folder and log would land "
+                              f"outside out {spec.out}")
     runs = []
     for task in spec.tasks:
         for model in spec.models:
@@ -215,6 +232,7 @@ def expand(spec: SweepSpec) -> list[Run]:
                                       device=spec.device,
                                       out=os.path.join(spec.out, run_name(scene, task, model, arm, seed)))
                         cfg = build_config(task, spec.config, overrides=values)
+                        _check_inside(spec.out, cfg.run_dir(), f"scene {scene!r}")
                         runs.append(Run(scene, task, model, arm, seed, cfg))
     return runs
 
@@ -237,12 +255,40 @@ def machine() -> str:
     return text + ")"
 
 
-def _continue_or_replace(cfg: TrainConfig) -> dict:
+def changed_keys(cfg: TrainConfig) -> list[str]:
+    """Keys in which the run in ``cfg.run_dir()`` (its config.toml) differs from ``cfg``;
+    ``["config.toml (unreadable)"]`` when it cannot be read."""
+    from warpnerf.runs.folder import RESULT_NEUTRAL_KEYS, read_run_config  # lazy: see execute_run
+
+    try:
+        saved = read_run_config(cfg.run_dir()).to_dict()
+    except Exception:  # noqa: BLE001 - a foreign or broken config.toml
+        return ["config.toml (unreadable)"]
+    now = cfg.to_dict()
+    return [k for k in now if k not in RESULT_NEUTRAL_KEYS and saved.get(k) != now[k]] or ["metrics.json"]
+
+
+def finished_conflict(cfg: TrainConfig) -> Optional[str]:
+    """One line when ``cfg.run_dir()`` holds a finished run of another configuration, else None."""
+    from warpnerf.runs.folder import folder_state  # lazy: see execute_run
+
+    if folder_state(cfg.run_dir()) != "finished":
+        return None
+    return (f"{cfg.run_dir()} holds a finished run of another configuration (changed: "
+            f"{', '.join(changed_keys(cfg))})")
+
+
+def _continue_or_replace(cfg: TrainConfig, overwrite: bool = False) -> dict:
     """Train ``cfg`` in its run folder: an unfinished run of the same configuration (a worker that
-    crashed or was stopped) continues from its last checkpoint; anything else there is replaced."""
+    crashed or was stopped) continues from its last checkpoint; an unfinished run of another
+    configuration is replaced; a finished one only with ``overwrite``."""
     from warpnerf.runs.folder import config_hash, folder_state, read_run_config  # lazy: see execute_run
     from warpnerf.runs.run import run_training  # lazy: see execute_run
 
+    if not overwrite:
+        conflict = finished_conflict(cfg)
+        if conflict:  # the driver checked too; a run that finished since must not be lost either
+            raise ConfigError(f"{conflict}; pass --overwrite to replace it")
     if folder_state(cfg.run_dir()) == "unfinished":
         try:
             same = config_hash(read_run_config(cfg.run_dir())) == config_hash(cfg)
@@ -254,13 +300,14 @@ def _continue_or_replace(cfg: TrainConfig) -> dict:
 
 
 def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optional[str] = None,
-                stream: bool = False) -> dict:
+                stream: bool = False, overwrite: bool = False) -> dict:
     """Train one configuration; never raises. Returns ``{"status": "done", "metrics": ...}`` or
     ``{"status": "failed", "error": one line}``, plus ``machine``.
 
     ``threads``: Warp and torch CPU threads for this run (results do not depend on it, so it is
     not part of the configuration and a restart with another worker count still skips).
     ``log_path``: the run's output goes to this file (and to stdout as well with ``stream``).
+    ``overwrite``: a finished run of another configuration in the folder is replaced (else: failed).
     """
     # lazy: the command line imports this module to build its parser, and runs/ brings the whole trainer
     # (~0.13 s on top of --help); a worker loads it here, before its output goes to the run's log
@@ -280,7 +327,7 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
         sink = _Tee(log, sys.stdout) if stream and log else (log or sys.stdout)
         with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
             try:
-                result.update(status="done", metrics=_continue_or_replace(cfg))
+                result.update(status="done", metrics=_continue_or_replace(cfg, overwrite))
                 # where it ran, for the table's note when a restarted sweep skips this run
                 with open(os.path.join(cfg.run_dir(), MACHINE_FILE), "w") as fh:
                     fh.write(result["machine"] + "\n")
@@ -314,9 +361,9 @@ class _Tee:
             st.flush()
 
 
-def _worker_entry(cfg_values: dict, threads: Optional[int], log_path: str) -> dict:
+def _worker_entry(cfg_values: dict, threads: Optional[int], log_path: str, overwrite: bool = False) -> dict:
     """Entry point of a local worker process (spawned: no forked Warp/torch state)."""
-    return execute_run(cfg_values, threads, log_path)
+    return execute_run(cfg_values, threads, log_path, overwrite=overwrite)
 
 
 # ----------------------------------------------------------------------------- backends
@@ -383,7 +430,8 @@ def _log_path(run: Run) -> str:
     return os.path.join(os.path.dirname(run_dir), "logs", os.path.basename(run_dir) + ".log")
 
 
-def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers: int, progress: _Progress) -> None:
+def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers: int, progress: _Progress,
+               overwrite: bool = False) -> None:
     """Sequential in this process (workers <= 1) or a pool of spawned single-use worker processes."""
     threads = spec.num_cpus
     if workers > 1 and threads is None:
@@ -395,7 +443,7 @@ def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers:
                 res.attempts += 1
                 progress.started()
                 t0 = time.perf_counter()
-                out = execute_run(res.run.cfg.to_dict(), threads, _log_path(res.run))
+                out = execute_run(res.run.cfg.to_dict(), threads, _log_path(res.run), overwrite=overwrite)
                 _settle(res, out, time.perf_counter() - t0)
                 final = res.status == "done" or res.attempts > retries
                 progress.finished(res, final)
@@ -412,7 +460,7 @@ def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers:
                 res = queue.pop(0)
                 res.attempts += 1
                 progress.started()
-                fut = pool.submit(_worker_entry, res.run.cfg.to_dict(), threads, _log_path(res.run))
+                fut = pool.submit(_worker_entry, res.run.cfg.to_dict(), threads, _log_path(res.run), overwrite)
                 running[fut] = (res, time.perf_counter())
             done, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for fut in done:
@@ -443,7 +491,7 @@ def ray_missing_message() -> str:
 
 
 def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: Optional[str],
-             progress: _Progress) -> None:
+             progress: _Progress, overwrite: bool = False) -> None:
     """One Ray task per run with the spec's resources; output streamed by Ray, results gathered here."""
     import ray  # optional extra: warpnerf[cluster]
 
@@ -457,7 +505,7 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
     def submit(res: RunResult):
         res.attempts += 1
         progress.started()
-        ref = task.remote(res.run.cfg.to_dict(), threads, _log_path(res.run), True)
+        ref = task.remote(res.run.cfg.to_dict(), threads, _log_path(res.run), True, overwrite)
         running[ref] = (res, time.perf_counter())
 
     for res in pending:
@@ -488,11 +536,15 @@ def _settle(res: RunResult, out: dict, seconds: float) -> None:
 # ----------------------------------------------------------------------------- the sweep
 
 def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_address: Optional[str] = None,
-              retries: Optional[int] = None, progress: bool = True) -> dict:
+              retries: Optional[int] = None, progress: bool = True, overwrite: bool = False) -> dict:
     """Run (or skip) every run of ``spec`` and write ``table.md``, plots and ``sweep.json`` under ``spec.out``.
 
     Returns ``{"results": [RunResult], "table": markdown, "failed": [RunResult]}``.
-    Raises ``ConfigError`` for a bad spec and ``SweepError`` when the Ray backend is not installed.
+    Raises ``ConfigError`` for a bad spec, for a scene name that leads outside ``spec.out`` and, without
+    ``overwrite``, for a run folder holding a finished run of another configuration (nothing is
+    written then); ``SweepError`` when the Ray backend is not installed.
+    ``spec.out`` and ``spec.data_root`` are made absolute here, on the driver: Ray workers run in
+    another working directory (and on other nodes), and a relative path would resolve there.
     """
     if backend not in ("local", "ray"):
         raise ConfigError(f"unknown backend '{backend}': expected local or ray")
@@ -506,6 +558,17 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
         raise ConfigError(f"retries must be >= 0, got {retries}")
     from warpnerf.runs.folder import finished_metrics  # lazy: see execute_run
 
+    spec.out = os.path.abspath(spec.out)
+    if spec.data_root:
+        spec.data_root = os.path.abspath(spec.data_root)
+    else:  # as run_training records it in config.toml, so a restart compares equal configurations
+        from warpnerf.data.errors import DatasetError  # lazy: see execute_run
+        from warpnerf.data.resolve import data_root_from  # lazy: see execute_run
+
+        try:
+            spec.data_root = data_root_from(None)
+        except DatasetError as e:
+            raise ConfigError(str(e)) from None
     runs = expand(spec)
     results = [RunResult(r) for r in runs]
     for res in results:
@@ -516,6 +579,12 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
                 with open(os.path.join(res.run.cfg.run_dir(), MACHINE_FILE)) as fh:
                     res.machine = fh.read().strip()
     pending = [r for r in results if r.status != "skipped"]
+    if not overwrite:
+        conflicts = [c for c in (finished_conflict(r.run.cfg) for r in pending) if c]
+        if conflicts:
+            more = f" (and {len(conflicts) - 1} more run folders)" if len(conflicts) > 1 else ""
+            raise ConfigError(f"sweep: {conflicts[0]}{more}; pass --overwrite to replace finished runs, "
+                              "or choose another out")
     os.makedirs(spec.out, exist_ok=True)
     bar = _Progress(len(results), len(results) - len(pending), progress)
     bar.write(f"sweep: {len(results)} runs, {len(results) - len(pending)} already finished (skipped), "
@@ -523,9 +592,9 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
     try:
         if pending:
             if backend == "ray":
-                _run_ray(pending, spec, retries, ray_address, bar)
+                _run_ray(pending, spec, retries, ray_address, bar, overwrite)
             else:
-                _run_local(pending, spec, retries, workers, bar)
+                _run_local(pending, spec, retries, workers, bar, overwrite)
     finally:
         bar.close()
         _write_status(spec, results)
@@ -560,6 +629,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", default=None, help="override the spec's out folder")
     p.add_argument("--data-root", default=None, help="override the spec's data_root")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace finished runs of another configuration (default: refuse, naming the changed keys)")
     p.set_defaults(func=run_cli)
 
 
@@ -574,7 +645,7 @@ def run_cli(args, on_done: Optional[Callable[[dict], None]] = None) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     try:
         res = run_sweep(spec, backend=args.backend, workers=args.workers, ray_address=args.ray_address,
-                        retries=args.retries, progress=not args.quiet)
+                        retries=args.retries, progress=not args.quiet, overwrite=getattr(args, "overwrite", False))
     except SweepError as e:
         print(f"warpnerf: error: {e}", file=sys.stderr)
         return 2

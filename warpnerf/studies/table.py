@@ -30,8 +30,10 @@ def table_spec(scenes: list[str], tasks: list[str], models: Optional[list[str]] 
 
 def run_table(scenes: list[str], tasks: list[str], models: Optional[list[str]] = None, data_root: Optional[str] = None,
               iters: Optional[int] = None, out: str = "runs/table", seed: int | list[int] = 0, device: str = "auto",
-              config_file: Optional[str] = None, threads: Optional[int] = None, progress: bool = True) -> dict:
+              config_file: Optional[str] = None, threads: Optional[int] = None, progress: bool = True,
+              overwrite: bool = False) -> dict:
     """Train (or skip, when finished with the identical configuration) both arms of every run and
-    write ``<out>/table.md``. Returns ``run_sweep``'s result (``table``, ``results``, ``failed``)."""
+    write ``<out>/table.md``. Returns ``run_sweep``'s result (``table``, ``results``, ``failed``).
+    A finished run of another configuration (e.g. other ``iters``) is replaced only with ``overwrite``."""
     spec = table_spec(scenes, tasks, models, data_root, iters, out, seed, device, config_file, threads)
-    return run_sweep(spec, progress=progress)
+    return run_sweep(spec, progress=progress, overwrite=overwrite)
