@@ -24,7 +24,7 @@ import sys
 import numpy as np
 import torch
 
-from warpnerf.data.errors import DatasetError, check_frames, read_json_object
+from warpnerf.data.errors import DatasetError, check_frames, check_intrinsics, json_number, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
 from warpnerf.data.scene import Scene, Views
 from warpnerf.geometry.rayspace import RaySpace
@@ -169,14 +169,16 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
     load_parallel(paths, load_one)
 
     if "fl_x" in meta:
-        focal_full = float(meta["fl_x"])
-        cx_full, cy_full = float(meta.get("cx", w0 / 2)), float(meta.get("cy", h0 / 2))
+        focal_full = json_number(path, "fl_x", meta["fl_x"], positive=True)
+        cx_full = json_number(path, "cx", meta["cx"]) if "cx" in meta else w0 / 2
+        cy_full = json_number(path, "cy", meta["cy"]) if "cy" in meta else h0 / 2
     else:
-        angle = float(meta["camera_angle_x"])
+        angle = json_number(path, "camera_angle_x", meta["camera_angle_x"])
         if not 0.0 < angle < math.pi:
             raise DatasetError(f"{path}: 'camera_angle_x' must be in (0, pi) radians, got {angle}")
         focal_full = 0.5 * w0 / math.tan(0.5 * angle)
         cx_full, cy_full = w0 / 2, h0 / 2
+    check_intrinsics(path, w0, h0, focal_full, focal_full, cx_full, cy_full)
     return Views(
         images=torch.from_numpy(images),
         c2w=torch.from_numpy(c2w),

@@ -1,6 +1,7 @@
 """The one exception type of the data layer."""
 
 import json
+import math
 import os
 
 import numpy as np
@@ -66,3 +67,29 @@ def check_frames(path: str, frames, empty: str = "") -> None:
         if m.shape not in ((4, 4), (3, 4)):
             raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
         check_c2w(m, f"{path}: frame {i} 'transform_matrix'")
+
+
+def json_number(where: str, key: str, value, positive: bool = False, integer: bool = False) -> float:
+    """``value`` (read from a JSON file) as a finite float, or DatasetError naming ``where`` and ``key``:
+    strings, booleans, lists and null are not numbers (``"wide"`` or ``"abc"`` where a number belongs).
+    ``positive``: must be > 0; ``integer``: must be a whole number (an image size)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DatasetError(f"{where}: key '{key}' must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise DatasetError(f"{where}: key '{key}' must be finite, got {value!r}")
+    if positive and not v > 0:
+        raise DatasetError(f"{where}: key '{key}' must be positive, got {value!r}")
+    if integer and v != int(v):
+        raise DatasetError(f"{where}: key '{key}' must be a whole number, got {value!r}")
+    return v
+
+
+def check_intrinsics(where: str, w, h, fx, fy, cx, cy) -> None:
+    """Image size and focal lengths positive and finite, principal point finite (every layout)."""
+    for key, value in (("width", w), ("height", h), ("focal length fx", fx), ("focal length fy", fy)):
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
+            raise DatasetError(f"{where}: {key} must be finite and positive, got {value!r}")
+    for key, value in (("cx", cx), ("cy", cy)):
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value)):
+            raise DatasetError(f"{where}: principal point {key} must be finite, got {value!r}")

@@ -73,8 +73,8 @@ def load_llff(
         pb = np.load(pb_path)
     except FileNotFoundError:
         raise DatasetError(f"missing {pb_path}") from None
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"cannot read {pb_path}: {exc}") from None
+    except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty (0-byte) file
+        raise DatasetError(f"cannot read {pb_path}: {exc or 'empty file'}") from None
     if pb.ndim != 2 or pb.shape[1] != 17 or len(pb) == 0:
         raise DatasetError(f"{pb_path}: expected an (N, 17) array, got shape {pb.shape}")
     pb = pb.astype(np.float64)

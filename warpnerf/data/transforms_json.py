@@ -27,7 +27,7 @@ import numpy as np
 
 from warpnerf.data.capture import Frame, build_scene
 from warpnerf.data.distortion import Intrinsics
-from warpnerf.data.errors import DatasetError, check_frames, read_json_object
+from warpnerf.data.errors import DatasetError, check_frames, json_number, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, read_image
 from warpnerf.data.scene import Scene
 
@@ -48,30 +48,38 @@ def read_transforms_json(path: str) -> dict:
 
 def frame_intrinsics(meta: dict, fr: dict, image_path: str, source: str) -> Intrinsics:
     """Intrinsics of one frame: its own keys over the top-level ones; size from the image if absent."""
-    get = lambda k: fr.get(k, meta.get(k))  # noqa: E731
-    w, h = get("w"), get("h")
+    def where(k: str) -> str:
+        return f"{source} (frame {fr['file_path']})" if k in fr else source
+
+    def get(k: str, **kw):
+        value = fr.get(k, meta.get(k))
+        return None if value is None else json_number(where(k), k, value, **kw)
+
+    w, h = get("w", positive=True, integer=True), get("h", positive=True, integer=True)
     if w is None or h is None:
         img = read_image(image_path)
         h, w = img.shape[:2]
     w, h = int(w), int(h)
     if get("k4"):
         raise DatasetError(f"{source}: frame {fr['file_path']} has k4 (fisheye distortion), which is not supported")
-    fx, fy = get("fl_x"), get("fl_y")
+    fx, fy = get("fl_x", positive=True), get("fl_y", positive=True)
     if fx is None:
         ax = get("camera_angle_x")
         if ax is None:
             raise DatasetError(f"{source}: no focal length for frame {fr['file_path']} (need 'fl_x' or 'camera_angle_x')")
-        fx = 0.5 * w / math.tan(0.5 * float(ax))
+        if not 0.0 < ax < math.pi:
+            raise DatasetError(f"{where('camera_angle_x')}: key 'camera_angle_x' must be in (0, pi) radians, got {ax}")
+        fx = 0.5 * w / math.tan(0.5 * ax)
     if fy is None:
         ay = get("camera_angle_y")
-        fy = 0.5 * h / math.tan(0.5 * float(ay)) if ay is not None else fx
-    try:
-        return Intrinsics(w, h, float(fx), float(fy), float(get("cx") if get("cx") is not None else w / 2),
-                          float(get("cy") if get("cy") is not None else h / 2),
-                          k1=float(get("k1") or 0.0), k2=float(get("k2") or 0.0), k3=float(get("k3") or 0.0),
-                          p1=float(get("p1") or 0.0), p2=float(get("p2") or 0.0))
-    except (TypeError, ValueError):
-        raise DatasetError(f"{source}: non-numeric intrinsics for frame {fr['file_path']}") from None
+        if ay is not None and not 0.0 < ay < math.pi:
+            raise DatasetError(f"{where('camera_angle_y')}: key 'camera_angle_y' must be in (0, pi) radians, got {ay}")
+        fy = 0.5 * h / math.tan(0.5 * ay) if ay is not None else fx
+    cx, cy = get("cx"), get("cy")
+    return Intrinsics(w, h, float(fx), float(fy), float(cx if cx is not None else w / 2),
+                      float(cy if cy is not None else h / 2),
+                      k1=get("k1") or 0.0, k2=get("k2") or 0.0, k3=get("k3") or 0.0,
+                      p1=get("p1") or 0.0, p2=get("p2") or 0.0)
 
 
 def _image_path(root: str, file_path: str) -> str:
@@ -117,6 +125,8 @@ def load_transforms_json(
         lists = {s: list(meta.get(f"{s}_filenames") or []) for s in ("train", "val", "test")}
         lists = {k: v for k, v in lists.items() if v}
     aabb_scale = meta.get("aabb_scale")
+    if aabb_scale not in (None, 0):  # 0: unset, as before
+        aabb_scale = json_number(path, "aabb_scale", aabb_scale, positive=True)
     return build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
                        downscale=downscale, white_background=white_background,
                        aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize,

@@ -312,7 +312,13 @@ def build_config(task: str, config_file: Optional[str] = None, overrides: Option
     return cfg
 
 
+_FLOAT_FIELDS = tuple(f.name for f in fields(TrainConfig) if field_type(f.name)[0] is float)
+
+
 def validate(cfg: TrainConfig) -> None:
+    if cfg.builtin_resolution is not None and cfg.builtin_resolution < 8:
+        raise ConfigError(f"builtin_resolution must be >= 8 pixels (unset: the generator's default), "
+                          f"got {cfg.builtin_resolution}")
     if cfg.iters < 1:
         raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
     if cfg.batch_rays < 1 or cfg.target_samples < 1:
@@ -365,3 +371,9 @@ def validate(cfg: TrainConfig) -> None:
     dev = cfg.device
     if not (dev in ("auto", "cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
         raise ConfigError(f"unknown device '{dev}': expected auto, cpu, cuda or cuda:N")
+    # the checks above name a key's range; NaN slips through any check written as "refuse if
+    # value < lo" (every comparison with NaN is false): refuse it, and +-inf, in every float field
+    for name in _FLOAT_FIELDS:
+        value = getattr(cfg, name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{name} must be a finite number, got {value}")

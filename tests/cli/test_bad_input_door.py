@@ -1,0 +1,171 @@
+"""Validation at the door (issue #64): bad values fail before anything loads or is written, with
+exit code 2 and one line naming the file or flag and key."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fake_scenes import write_blender
+from warpnerf.cli import main
+from warpnerf.train.config import _FLOAT_FIELDS
+
+TRAIN = ["train", "--quiet", "--iters", "2", "--threads", "1", "--video-frames", "0"]
+
+
+def tree(path):
+    out = {}
+    for root, dirs, files in os.walk(path):
+        for name in dirs + files:
+            p = os.path.join(root, name)
+            st = os.stat(p)
+            out[os.path.relpath(p, path)] = (st.st_size if name in files else 0, st.st_mtime_ns)
+    return out
+
+
+def refused(tmp_path, capsys, argv, *needles):
+    """``main(argv)`` exits 2 with one stderr line holding ``needles``, and changes nothing under tmp_path."""
+    before = tree(tmp_path)
+    assert main(argv) == 2, argv
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
+    assert len(err) == 1, err
+    assert err[0].startswith("warpnerf: error: ") and "Traceback" not in err[0]
+    for n in needles:
+        assert n in err[0], (n, err[0])
+    assert tree(tmp_path) == before
+    return err[0]
+
+
+@pytest.mark.parametrize("name", _FLOAT_FIELDS)
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_every_float_flag_refuses_non_finite_values(tmp_path, capsys, name, value):
+    refused(tmp_path, capsys, [*TRAIN, f"--{name.replace('_', '-')}={value}", "--out", str(tmp_path / "run")],
+            name)
+
+
+def test_error_sampling_nan_in_a_config_file(tmp_path, capsys):
+    (tmp_path / "c.toml").write_text("error_sampling = nan\n")
+    refused(tmp_path, capsys, [*TRAIN, "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "run")],
+            "error_sampling", "finite")
+
+
+@pytest.mark.parametrize("res", ["0", "-3", "4"])
+def test_builtin_resolution_out_of_range_is_refused(tmp_path, capsys, res):
+    refused(tmp_path, capsys, [*TRAIN, "--builtin-resolution", res, "--out", str(tmp_path / "run")],
+            "builtin_resolution")
+
+
+# --- data loaders: a non-numeric or non-positive value names the file and the key -------------------------
+
+
+def _blender(tmp_path, **meta_changes):
+    root = write_blender(str(tmp_path / "data" / "scene"), n=2, size=16)
+    for split in ("train", "val", "test"):
+        path = os.path.join(root, f"transforms_{split}.json")
+        with open(path) as f:
+            meta = json.load(f)
+        for k, v in meta_changes.items():
+            if v is None:
+                meta.pop(k, None)
+            else:
+                meta[k] = v
+        with open(path, "w") as f:
+            json.dump(meta, f)
+    return root
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"camera_angle_x": "wide"}, "camera_angle_x"),
+    ({"camera_angle_x": None, "fl_x": "abc"}, "fl_x"),
+    ({"camera_angle_x": None, "fl_x": 0}, "fl_x"),
+    ({"camera_angle_x": None, "fl_x": -5.0}, "fl_x"),
+    ({"camera_angle_x": None, "fl_x": 20.0, "cx": "middle"}, "cx"),
+    ({"camera_angle_x": [0.7]}, "camera_angle_x"),
+    ({"camera_angle_x": True}, "camera_angle_x"),
+])
+def test_blender_non_numeric_or_bad_focal(tmp_path, capsys, changes, key):
+    _blender(tmp_path, **changes)
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "scene",
+                               "--out", str(tmp_path / "run")], "transforms_train.json", key)
+
+
+def _transforms(tmp_path, top=None, frame=None, n=4, size=16):
+    root = tmp_path / "data" / "cap"
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for k in range(n):
+        Image.fromarray(np.full((size, size, 3), 40 * k, np.uint8)).save(root / "images" / f"{k}.png")
+        a = 0.4 * k
+        m = [[np.cos(a), 0, np.sin(a), 3 * np.sin(a)], [0, 1, 0, 0.1 * k], [-np.sin(a), 0, np.cos(a), 3 * np.cos(a)],
+             [0, 0, 0, 1]]
+        frames.append({"file_path": f"images/{k}.png", "transform_matrix": m, **(frame or {})})
+    meta = {"fl_x": 20.0, "fl_y": 20.0, "w": size, "h": size, "frames": frames, **(top or {})}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+@pytest.mark.parametrize("top, frame, key", [
+    ({"w": "abc"}, None, "'w'"),
+    ({"h": 0}, None, "'h'"),
+    ({"w": 15.5}, None, "'w'"),
+    ({"aabb_scale": "big"}, None, "aabb_scale"),
+    ({"aabb_scale": -2}, None, "aabb_scale"),
+    ({"fl_x": "wide"}, None, "fl_x"),
+    ({"fl_x": 0.0}, None, "fl_x"),
+    ({"fl_y": -1.0}, None, "fl_y"),
+    (None, {"fl_x": "x"}, "fl_x"),
+    ({"fl_x": None, "camera_angle_x": "wide"}, None, "camera_angle_x"),
+    ({"fl_x": None, "camera_angle_x": 4.0}, None, "camera_angle_x"),
+    ({"k1": "small"}, None, "k1"),
+])
+def test_transforms_json_non_numeric_values(tmp_path, capsys, top, frame, key):
+    if top and top.get("fl_x", 1) is None:
+        top = {k: v for k, v in top.items() if k != "fl_x"}
+        root = _transforms(tmp_path, top)
+        meta = json.loads((root / "transforms.json").read_text())
+        meta.pop("fl_x")
+        meta.pop("fl_y")
+        (root / "transforms.json").write_text(json.dumps(meta))
+    else:
+        _transforms(tmp_path, top, frame)
+    line = refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "cap",
+                                      "--out", str(tmp_path / "run")], "transforms.json", key)
+    assert "frame" in line if frame else True
+
+
+def test_a_zero_byte_poses_bounds_is_one_line(tmp_path, capsys):
+    root = tmp_path / "data" / "ff"
+    (root / "images_8").mkdir(parents=True)
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(root / "images_8" / "0.png")
+    (root / "poses_bounds.npy").write_bytes(b"")
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "ff",
+                               "--out", str(tmp_path / "run")], "poses_bounds.npy")
+
+
+def test_llff_focal_must_be_positive(tmp_path, capsys):
+    from fake_scenes import random_rotations, write_llff
+
+    n = 4
+    rng = np.random.default_rng(0)
+    write_llff(str(tmp_path / "data" / "ff"), random_rotations(n) * 0 + np.eye(3), rng.normal(size=(n, 3)) * 0.1,
+               np.tile([1.0, 10.0], (n, 1)), hwf=(64, 64, 0.0), factor=8)
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "ff",
+                               "--out", str(tmp_path / "run")], "poses_bounds.npy", "focal")
+
+
+@pytest.mark.parametrize("fx", [0.0, -3.0, float("nan"), float("inf")])
+def test_every_capture_layout_refuses_a_bad_focal(tmp_path, fx):
+    """COLMAP and transforms.json scenes both go through build_scene: a camera with a zero, negative
+    or non-finite focal length is a DatasetError naming the source and image."""
+    from warpnerf.data.capture import Frame, build_scene
+    from warpnerf.data.distortion import Intrinsics
+    from warpnerf.data.errors import DatasetError
+
+    frames = [Frame(f"{k}.png", str(tmp_path / f"{k}.png"), np.eye(4)[:3], Intrinsics(16, 16, fx, 20.0, 8.0, 8.0))
+              for k in range(3)]
+    with pytest.raises(DatasetError, match=r"sparse/0/cameras.txt \(image 0.png\).*focal"):
+        build_scene(frames, None, str(tmp_path), "colmap", "sparse/0/cameras.txt")
