@@ -120,3 +120,21 @@ def test_out_reaches_workers_as_an_absolute_path(tmp_path, monkeypatch):
     assert os.path.isabs(out) and out == str(tmp_path / "rel" / "out" / "chair_fewshot_ngp_nog2fr_s0")
     assert data_root == str(tmp_path / "data") and os.path.isabs(log_path)
     assert log_path.startswith(str(tmp_path / "rel" / "out"))
+
+
+def test_table_replaces_finished_runs_only_with_overwrite(tmp_path, capsys, monkeypatch):
+    """`warpnerf table` is a sweep too: other --iters are refused, and --overwrite retrains both arms."""
+    monkeypatch.setenv("WARPNERF_CACHE", str(tmp_path / "cache"))
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text("builtin_resolution = 16\nvideo_frames = 0\neval_max_views = 1\n")
+    out = tmp_path / "table"
+    args = ["table", "--scenes", "chair", "--tasks", "fewshot", "--config", str(cfg), "--out", str(out), "--quiet"]
+    assert main([*args, "--iters", "5"]) == 0
+    capsys.readouterr()
+    before = tree(out)
+    assert main([*args, "--iters", "6"]) == 2
+    one_line_error(capsys, "finished run", "iters", "--overwrite")
+    assert tree(out) == before
+    assert main([*args, "--iters", "6", "--overwrite"]) == 0
+    for arm in ("g2fr", "nog2fr"):
+        assert json.loads((out / f"chair_fewshot_ngp_{arm}_s0" / "metrics.json").read_text())["iters"] == 6

@@ -198,7 +198,7 @@ def cmd_table(args) -> int:
     recorder = _Recorder(args, "table")
     res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
                     data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
-                    config_file=args.config, threads=args.threads, progress=not args.quiet)
+                    config_file=args.config, threads=args.threads, progress=not args.quiet, overwrite=args.overwrite)
     print(res["table"])
     recorder.write(*_table_record_dirs(res["results"]))
     return report_failures(res["failed"])
@@ -254,6 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--reuse", action="store_true",
                     help="(always on now: a run folder holding a finished run of the same configuration is read)")
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
+    tb.add_argument("--overwrite", action="store_true",
+                    help="replace finished runs whose configuration differs (e.g. other --iters); never others' folders")
     _add_device(tb)
     _add_record(tb)
     tb.set_defaults(func=cmd_table)
