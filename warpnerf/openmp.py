@@ -5,7 +5,7 @@ very cores Warp's launch threads need next. Fully passive waiting (``OMP_WAIT_PO
 warpnerf's earlier choice) instead pays a futex wake-up per parallel region, which made each small
 torch op (the 4096-row MLP blocks, Adam, indexing) 2-3x slower. A short spin (``GOMP_SPINCOUNT``)
 keeps back-to-back ops fast and frees the core soon after: measured, a chair few-shot step is
-~20 % faster than with passive waiting (README, "Speed"). Other OpenMP runtimes (LLVM's, Intel's)
+~20 % faster than with passive waiting (docs/studies/2026-12-07-speed.md). Other OpenMP runtimes (LLVM's, Intel's)
 get their passive equivalent, ``KMP_BLOCKTIME=0``. Results are unchanged: only how idle threads wait.
 
 This module imports nothing heavy: the command line and the test suite call

@@ -306,7 +306,7 @@ def test_pose_alignment_recovers_a_known_sim3_and_is_symmetric():
 
 
 def test_pose_alignment_pins_the_rotation_where_centres_are_nearly_planar():
-    """fern's case (README, "Pose errors on forward-facing scenes"): every orientation is right but the
+    """fern's case (docs/studies/2026-12-07-pose-forward-facing.md): every orientation is right but the
     centres' depths carry an error that grows across the rig (a tilt of 3 deg, which nearly planar
     centres cannot tell from a rotation). Aligning the centres alone turns every camera by about that
     much; fitting the rotation to the orientations keeps them where they are, with the centres'

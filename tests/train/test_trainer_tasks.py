@@ -45,8 +45,8 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
 
 
 def test_pose_on_a_forward_facing_scene_has_a_one_line_caveat():
-    """On fern, centre alignment turned the cameras by 6 deg while the poses improved (README, "Pose
-    errors on forward-facing scenes"): the pose task aligns orientations there, which makes its errors
+    """On fern, centre alignment turned the cameras by 6 deg while the poses improved (docs/studies/
+    2026-12-07-pose-forward-facing.md): the pose task aligns orientations there, which makes its errors
     unlike BARF's; it says so in one line, which the run prints before training. Other scenes keep
     BARF's alignment and get no caveat, nor do other tasks."""
     from types import SimpleNamespace

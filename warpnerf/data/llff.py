@@ -137,7 +137,7 @@ def load_llff(
             # photos are opaque everywhere: with random training backgrounds (the default) the
             # targets stay as they are and transmittance left at a ray's end is penalised, so the
             # field becomes opaque instead of rendering dark regions as see-through (instant-ngp;
-            # the capture loader does the same). fern full: +0.8 dB test PSNR (README, "Speed")
+            # the capture loader does the same). fern full: +0.8 dB test PSNR (docs/studies/2026-12-07-forward-facing-preset.md)
             alpha=torch.ones(len(sel), h, w),
         )
 

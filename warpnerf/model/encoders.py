@@ -89,7 +89,7 @@ class CPGridEncoder(nn.Module):
       at -4) and the occupancy grid empties within the warm-up without it.
 
     Size: 3 * R * sum(s_l) parameters; the default (R = 8, 16..512) is 57,984 (0.23 MB), far
-    below the paper's ~11 MB; ``cp_rank`` 16/32 doubles/quadruples it (measured in README.md, "Mtrf").
+    below the paper's ~11 MB; ``cp_rank`` 16/32 doubles/quadruples it (docs/studies/2026-12-07-mtrf.md).
     """
 
     def __init__(self, spec: CPGridSpec, generator: torch.Generator | None = None):

@@ -59,7 +59,7 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
         for scene, arms in rows.items():
             if any(m.get("pose_alignment") == "orientations" for m in arms.values()):
                 lines.append(f"\n{scene}: forward-facing, so the alignment's rotation is fitted to the cameras' "
-                             "orientations, not their centres (README, 'Pose errors on forward-facing scenes'): "
+                             "orientations, not their centres (docs/studies/2026-12-07-pose-forward-facing.md): "
                              "not comparable with BARF's figures")
             for arm, m in arms.items():
                 stuck = describe_unconverged(m)

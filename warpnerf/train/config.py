@@ -25,7 +25,7 @@ import tokenize
 import types
 import typing
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from importlib import resources
 from typing import Any, Optional, Union
 
@@ -126,7 +126,7 @@ class TrainConfig:
     # instant-ngp samples 1/4 of the cells uniformly per update at 2^18 samples per step; at our 2^16
     # that update was ~20 % of a step. Every occupied cell is still re-sampled each update, so pruning
     # keeps its pace; only the discovery of new cells slows. lego full: 30.56 dB in 508 s with 1/16,
-    # 30.54 dB in 695 s with 1/4 (README, "Speed")
+    # 30.54 dB in 695 s with 1/4 (docs/studies/2026-12-07-speed.md)
     occ_uniform_fraction: float = 0.0625  # cells sampled uniformly per occupancy update after warm-up, as a fraction of all
     march_steps: int = 1024  # ray-marching steps across the box diagonal (instant-ngp: 1024)
     render_step: float = 0.0  # explicit ray-marching step in scene units; 0 = diagonal / march_steps
@@ -146,7 +146,7 @@ class TrainConfig:
     pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
     pose_reregister_at: float = 0.0  # pose: at this fraction of the run, search again for views left in a wrong basin (warpnerf.train.reregister; not in the paper); 0 = off
     pose_reregister_passes: int = 2  # pose: search up to this many times, at pose_reregister_at, 2x, ... of the run (views that only stand out once the field is sharp); passes past the run's end are dropped
-    pose_reregister_ratio: float = 5.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's (README: 10 missed views on Mtrf)
+    pose_reregister_ratio: float = 5.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's (docs/studies/2026-12-07-mic-reregistration.md)
     # --- evaluation and output ---
     eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
@@ -260,7 +260,7 @@ def load_toml(path: str) -> dict:
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from None
     known = _field_types()
-    for key, value in data.items():
+    for key in data:
         if key not in known:
             raise ConfigError(f"{path}: unknown config key '{key}'")
     return {k: _coerce(k, v, path) for k, v in data.items()}
@@ -296,7 +296,7 @@ def build_config(task: str, config_file: Optional[str] = None, overrides: Option
     if os.path.exists(preset):
         values.update(load_toml(preset))
     file_values = load_toml(config_file) if config_file else {}
-    for k, v in (overrides or {}).items():
+    for k in overrides or {}:
         if k not in _field_types():
             raise ConfigError(f"unknown config key '{k}'")
     given = {k: v for k, v in (overrides or {}).items() if v is not None}

@@ -1,7 +1,7 @@
 """Re-registering training views that joint pose optimisation left in a wrong basin.
 
-Not part of G²fR or BARF: an opt-in addition to the pose task (``pose_reregister_at``; README,
-"mic pose: views that do not converge").
+Not part of G²fR or BARF: an opt-in addition to the pose task (``pose_reregister_at``;
+docs/studies/2026-12-07-mic-reregistration.md).
 
 On mic, 1-4 of the 100 views of a run stay 5-30 deg off while the others converge to the paper's
 level, and those few make the mean error (0.5-0.7 deg instead of ~0.05). By a third of the run their

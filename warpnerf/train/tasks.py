@@ -140,7 +140,7 @@ class PoseTask(Task):
         self.alignment = "centres"  # set from the scene in setup (alignment_for)
 
     def caveat(self, scene: Scene) -> Optional[str]:
-        # measured on fern (README, "Pose errors on forward-facing scenes"): Procrustes on nearly planar
+        # measured on fern (docs/studies/2026-12-07-pose-forward-facing.md): Procrustes on nearly planar
         # camera centres turned the cameras by 6 deg
         if scene.ray_space.forward_facing:
             return ("note: on forward-facing (NDC) scenes the pose errors take the alignment's rotation from the "
@@ -216,7 +216,7 @@ class PoseTask(Task):
         self.history["trans_err_x100"].append(ev["trans_err_x100"])
         self.history["centre_err_x100"].append(ev["centre_err_x100"])
         self.history.setdefault("rot_err_deg_unaligned", []).append(ev["rot_err_deg_unaligned"])
-        # the part every camera shares (x100, camera axes): README, "Pose within the 20-minute budget"
+        # the part every camera shares (x100, camera axes): docs/studies/2026-12-07-pose-translation-offset.md
         self.history.setdefault("trans_offset_cam_x100", []).append(ev["trans_offset_cam_x100"])
         return ev
 

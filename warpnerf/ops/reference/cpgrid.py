@@ -1,7 +1,7 @@
 """Pure-torch twin of :func:`warpnerf.ops.cpgrid.cpgrid_encode` (same name, same signature).
 
 Vectorised over points, looping over levels and axes, differentiated by torch autograd. It is
-the reference of ``tests/test_cpgrid.py`` and a baseline for timing; it favours clarity over speed.
+the reference of ``tests/ops/test_cpgrid.py`` and a baseline for timing; it favours clarity over speed.
 """
 
 from __future__ import annotations

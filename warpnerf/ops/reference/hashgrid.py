@@ -1,7 +1,7 @@
 """Pure-torch twin of :func:`warpnerf.ops.hashgrid.hashgrid_encode` (same name, same signature).
 
 Vectorised, differentiated by torch autograd. It is the baseline of ``warpnerf bench encoding``
-and the reference of ``tests/test_hashgrid.py``; it favours clarity over speed.
+and the reference of ``tests/ops/test_hashgrid.py``; it favours clarity over speed.
 """
 
 from __future__ import annotations
