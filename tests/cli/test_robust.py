@@ -234,7 +234,7 @@ CONFIG_CASES = {
     "threads0": (["--threads", "0"], "thread"),
     "iters0": (["--iters", "0"], "iters"),
     "lr_negative": (["--lr", "-1"], "lr"),
-    "save_every_negative": (["--save-every", "-1"], "save_every"),
+    "checkpoint_every_negative": (["--checkpoint-every", "-1"], "checkpoint_every"),
     "n_views0": (["--task", "fewshot", "--n-views", "0"], "n_views"),
     "n_views_too_many": (["--task", "fewshot", "--n-views", "999", "--builtin-resolution", "16"], "n_views"),
     "unknown_device": (["--device", "tpu"], "device"),

@@ -181,3 +181,21 @@ def test_forward_facing_scenes_get_their_preset(tmp_path, monkeypatch):
     assert C.build_config("full", overrides={"scene": "leaves"}).distortion_weight == ff["distortion_weight"]
     # an unusable data root is loading's error to report, not the config's
     assert C.build_config("full", overrides={"scene": "yard", "data_root": str(tmp_path / "none")}).march_steps == 256
+
+
+def test_renamed_keys_of_an_old_run_folder_still_load(tmp_path):
+    """eval_every (it counted views, its siblings count steps) is eval_view_stride; save_every and
+    checkpoint_every, two periods for one file, are checkpoint_every. An old config.toml still loads."""
+    from warpnerf.train.config import ConfigError, build_config, load_toml
+
+    p = tmp_path / "config.toml"
+    p.write_text('task = "full"\neval_every = 4\nsave_every = 500\ncheckpoint_every = 100\n')
+    assert load_toml(str(p)) == {"task": "full", "eval_view_stride": 4, "checkpoint_every": 100}
+    p.write_text("save_every = 500\ncheckpoint_every = 0\n")
+    assert load_toml(str(p)) == {"checkpoint_every": 500}
+    p.write_text("save_every = 0\ncheckpoint_every = 0\n")
+    assert load_toml(str(p)) == {"checkpoint_every": 0}
+    assert build_config("full", overrides={"save_every": 250, "eval_every": 2}).checkpoint_every == 250
+    p.write_text('save_every = "often"\n')
+    with pytest.raises(ConfigError, match="checkpoint_every"):
+        load_toml(str(p))

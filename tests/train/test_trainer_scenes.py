@@ -55,7 +55,7 @@ def test_thin_builtin_scene_trains(tmp_path):
 
     scene = load_scene("stand", builtin_resolution=48, cache_dir=str(tmp_path), progress=False,
                        splits=("train", "test"))
-    cfg = build_config("full", overrides={**TINY, "lr": 1e-2, "iters": 300, "eval_max_views": 3, "eval_every": 40})
+    cfg = build_config("full", overrides={**TINY, "lr": 1e-2, "iters": 300, "eval_max_views": 3, "eval_view_stride": 40})
     trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
     trainer.fit(progress=False)
     res = evaluate(trainer, None, progress=False)
@@ -75,7 +75,7 @@ def test_unbounded_builtin_scene_trains_background_included(tmp_path, model):
     scene = load_scene("garden", builtin_resolution=32, cache_dir=str(tmp_path), progress=False,
                        splits=("train", "test"))
     assert scene.ray_space.is_contracted and scene.kind == "unbounded"
-    cfg = build_config("full", overrides={**TINY, "iters": 400, "eval_max_views": 3, "eval_every": 40, "model": model,
+    cfg = build_config("full", overrides={**TINY, "iters": 400, "eval_max_views": 3, "eval_view_stride": 40, "model": model,
                                           "cp_max_resolution": 128})
     trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
     trainer.fit(progress=False)
@@ -98,7 +98,7 @@ def test_forward_facing_builtin_scene_trains_in_ndc(tmp_path):
 
     scene = load_scene("yard", builtin_resolution=48, cache_dir=str(tmp_path), progress=False)
     assert scene.ray_space.kind == "ndc" and scene.kind == "llff"
-    cfg = build_config("full", overrides={**TINY, "iters": 200, "eval_max_views": 4, "eval_every": 1})
+    cfg = build_config("full", overrides={**TINY, "iters": 200, "eval_max_views": 4, "eval_view_stride": 1})
     trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
     trainer.fit(progress=False)
     res = evaluate(trainer, None, progress=False)

@@ -121,7 +121,7 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     """Train and evaluate one configuration; returns the metrics written to metrics.json.
 
     Everything the user can get wrong (config values, device, run folder, data) is checked before
-    the first file is written. With ``cfg.save_every`` (and ``cfg.checkpoint_every``) a checkpoint is
+    the first file is written. With ``cfg.checkpoint_every`` a checkpoint is
     saved atomically every that many steps; SIGINT/SIGTERM save one at the next step boundary and
     raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
     try:
@@ -205,9 +205,9 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
                                     "scene_source": scene.source})  # view/render/eval compare it
 
     def checkpoint_due(n_done: int) -> bool:
-        # save_every: for --resume; checkpoint_every: for 'warpnerf view' to follow the run
-        every = [n for n in (cfg.save_every, cfg.checkpoint_every) if n > 0]
-        return n_done < cfg.iters and any(n_done % n == 0 for n in every)
+        # for --resume, and for 'warpnerf view' to follow the run
+        every = cfg.checkpoint_every
+        return n_done < cfg.iters and every > 0 and n_done % every == 0
 
     def on_step_end(n_done: int) -> None:
         _fault(f"step:{n_done}")

@@ -148,7 +148,7 @@ class TrainConfig:
     pose_reregister_passes: int = 2  # pose: search up to this many times, at pose_reregister_at, 2x, ... of the run (views that only stand out once the field is sharp); passes past the run's end are dropped
     pose_reregister_ratio: float = 5.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's (docs/studies/2026-12-07-mic-reregistration.md)
     # --- evaluation and output ---
-    eval_every: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
+    eval_view_stride: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
     video_frames: int = 40  # turntable frames (0 = no video)
     out: str = ""  # run folder ('': runs/<scene>_<task>[_g2fr])
@@ -156,13 +156,12 @@ class TrainConfig:
     device: str = "auto"  # auto (cuda if Warp sees one, else cpu) | cpu | cuda | cuda:N
     threads: Optional[int] = None  # CPU threads for Warp launches and torch ops (unset: $WARPNERF_THREADS or min(2, cores))
     log_every: int = 50  # steps between progress-bar metric refreshes
-    save_every: int = 500  # steps between periodic checkpoints (0: only at the end)
     allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)
     # --- monitoring and metrics (warpnerf/train/monitor.py, warpnerf/train/metrics.py) ---
     log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps (pip install 'warpnerf[log]')
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
     heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
-    checkpoint_every: int = 0  # steps between checkpoint.pt saves during training ('warpnerf view' follows them); 0 = end only
+    checkpoint_every: int = 500  # steps between checkpoint.pt saves (for --resume; 'warpnerf view' follows them); 0 = only at the end
     lpips_weights: str = ""  # LPIPS(alex) weights: full state-dict file or folder (see metrics.py); "" = auto
 
     def run_dir(self) -> str:
@@ -259,11 +258,35 @@ def load_toml(path: str) -> dict:
         raise ConfigError(f"config file not found: {path}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from None
+    data = renamed_keys(data)
     known = _field_types()
     for key in data:
         if key not in known:
             raise ConfigError(f"{path}: unknown config key '{key}'")
     return {k: _coerce(k, v, path) for k, v in data.items()}
+
+
+# Keys renamed since run folders were first written, so an older config.toml still loads:
+# eval_every counted test views while every other *_every counts steps; save_every (for --resume)
+# and checkpoint_every (for the viewer) both set how often checkpoint.pt is written.
+RENAMED = {"eval_every": "eval_view_stride", "save_every": "checkpoint_every"}
+
+
+def renamed_keys(data: dict) -> dict:
+    """``data`` with the old key names of :data:`RENAMED` under their new names. An old file's
+    save_every and checkpoint_every merge into the shorter positive period (0 when neither saves)."""
+    if not any(k in data for k in RENAMED):
+        return data
+    out = {k: v for k, v in data.items() if k not in RENAMED}
+    if "eval_every" in data:
+        out.setdefault("eval_view_stride", data["eval_every"])
+    if "save_every" in data:
+        periods = [v for v in (data["save_every"], data.get("checkpoint_every", 0))
+                   if isinstance(v, int) and not isinstance(v, bool) and v > 0]
+        bad = [v for v in (data["save_every"], data.get("checkpoint_every", 0))
+               if not isinstance(v, int) or isinstance(v, bool)]
+        out["checkpoint_every"] = bad[0] if bad else (min(periods) if periods else 0)  # a bad value fails in _coerce
+    return out
 
 
 def preset_path(task: str) -> str:
@@ -296,7 +319,8 @@ def build_config(task: str, config_file: Optional[str] = None, overrides: Option
     if os.path.exists(preset):
         values.update(load_toml(preset))
     file_values = load_toml(config_file) if config_file else {}
-    for k in overrides or {}:
+    overrides = renamed_keys(overrides or {})
+    for k in overrides:
         if k not in _field_types():
             raise ConfigError(f"unknown config key '{k}'")
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
@@ -333,13 +357,13 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"lr_warmup must be >= 0, got {cfg.lr_warmup}")
     if cfg.sample_budget < cfg.max_samples_per_ray:
         raise ConfigError(f"sample_budget ({cfg.sample_budget}) must be >= max_samples_per_ray ({cfg.max_samples_per_ray})")
-    if cfg.eval_every < 1:
-        raise ConfigError(f"eval_every must be >= 1, got {cfg.eval_every}")
+    if cfg.eval_view_stride < 1:
+        raise ConfigError(f"eval_view_stride must be >= 1, got {cfg.eval_view_stride}")
     # one line naming the key for every value out of range, before any data loads or folder is written
     at_least = {"threads": 1, "n_views": 1, "log_every": 1, "levels": 1, "features": 1, "hidden": 1,
                 "occ_resolution": 1, "occ_update_every": 1, "march_steps": 1, "max_samples_per_ray": 1,
                 "base_resolution": 1, "max_resolution": 1, "cp_rank": 1, "cp_max_resolution": 1,
-                "log2_table_size": 1, "save_every": 0, "eval_max_views": 0, "video_frames": 0,
+                "log2_table_size": 1, "checkpoint_every": 0, "eval_max_views": 0, "video_frames": 0,
                 "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0}
     for key, lo in at_least.items():
         value = getattr(cfg, key)

@@ -93,7 +93,7 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
 
 def eval_views(trainer: "Trainer") -> Views:
     test = trainer.scene.test
-    pick = list(range(0, len(test), trainer.cfg.eval_every))
+    pick = list(range(0, len(test), trainer.cfg.eval_view_stride))
     if trainer.cfg.eval_max_views:
         pick = pick[: trainer.cfg.eval_max_views]
     return test.subset(pick)
