@@ -13,18 +13,9 @@ from PIL import Image
 from fake_scenes import write_blender
 from warpnerf.cli import main
 from warpnerf.train.config import _FLOAT_FIELDS
+from door import tree
 
 TRAIN = ["train", "--quiet", "--iters", "2", "--threads", "1", "--video-frames", "0"]
-
-
-def tree(path):
-    out = {}
-    for root, dirs, files in os.walk(path):
-        for name in dirs + files:
-            p = os.path.join(root, name)
-            st = os.stat(p)
-            out[os.path.relpath(p, path)] = (st.st_size if name in files else 0, st.st_mtime_ns)
-    return out
 
 
 def refused(tmp_path, capsys, argv, *needles):

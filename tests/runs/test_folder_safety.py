@@ -15,29 +15,10 @@ import pytest
 from warpnerf.cli import main
 from warpnerf.runs.folder import LOCK, MARKER, RunLock
 from warpnerf.train.config import ConfigError
+from door import tree, one_line_error
 
 TRAIN = ["train", "--quiet", "--scene", "chair", "--builtin-resolution", "16", "--iters", "2", "--threads", "1",
          "--video-frames", "0"]
-
-
-def tree(path):
-    """Every file and folder under ``path`` with size and mtime: shows nothing changed."""
-    out = {}
-    for root, dirs, files in os.walk(path):
-        for name in dirs + files:
-            p = os.path.join(root, name)
-            st = os.stat(p)
-            out[os.path.relpath(p, path)] = (st.st_size if name in files else 0, st.st_mtime_ns)
-    return out
-
-
-def one_line_error(capsys, *needles):
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
-    assert len(err) == 1, err
-    assert err[0].startswith("warpnerf: error: ") and "Traceback" not in err[0]
-    for n in needles:
-        assert n in err[0], (n, err[0])
-    return err[0]
 
 
 def fake_run(folder, finished=True):

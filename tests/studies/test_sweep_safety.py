@@ -12,6 +12,7 @@ import warpnerf.studies.sweep as sweep_mod
 from warpnerf.cli import main
 from warpnerf.studies.sweep import expand, load_spec, run_sweep
 from warpnerf.train.config import ConfigError
+from door import tree, one_line_error
 
 SPEC = """out = "{out}"
 scenes = {scenes}
@@ -28,24 +29,6 @@ video_frames = 0
 def write_spec(path, out, scenes=("chair",), iters=20):
     path.write_text(SPEC.format(out=out, scenes=json.dumps(list(scenes)), iters=iters))
     return str(path)
-
-
-def tree(path):
-    out = {}
-    for root, dirs, files in os.walk(path):
-        for name in dirs + files:
-            p = os.path.join(root, name)
-            st = os.stat(p)
-            out[os.path.relpath(p, path)] = (st.st_size if name in files else 0, st.st_mtime_ns)
-    return out
-
-
-def one_line_error(capsys, *needles):
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
-    assert len(err) == 1, err
-    assert err[0].startswith("warpnerf: error: ")
-    for n in needles:
-        assert n in err[0], (n, err[0])
 
 
 def finished_run(spec_path):
