@@ -37,7 +37,7 @@ ITERS, SAVE_EVERY = 30, 10
 
 def train_args(out, config):
     return [sys.executable, "-m", "warpnerf.cli", "train", "--quiet", "--task", "pose", "--scene", "chair",
-            "--builtin-resolution", "40", "--iters", str(ITERS), "--save-every", str(SAVE_EVERY), "--threads", "1",
+            "--builtin-resolution", "40", "--iters", str(ITERS), "--checkpoint-every", str(SAVE_EVERY), "--threads", "1",
             "--video-frames", "0", "--config", str(config), "--out", str(out)]
 
 

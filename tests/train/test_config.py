@@ -199,3 +199,10 @@ def test_renamed_keys_of_an_old_run_folder_still_load(tmp_path):
     p.write_text('save_every = "often"\n')
     with pytest.raises(ConfigError, match="checkpoint_every"):
         load_toml(str(p))
+
+
+def test_renamed_settings_keep_their_old_flags():
+    args = build_parser().parse_args(["train", "--save-every", "10", "--eval-every", "2"])
+    overrides = config_overrides(args)
+    assert overrides["checkpoint_every"] == 10 and overrides["eval_view_stride"] == 2
+    assert "save_every" not in overrides and "eval_every" not in overrides

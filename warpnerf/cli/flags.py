@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import MISSING, fields
 
-from warpnerf.train.config import CHOICES, TrainConfig, field_help, field_type
+from warpnerf.train.config import CHOICES, RENAMED, TrainConfig, field_help, field_type
 
 
 def flag_name(name: str) -> str:
@@ -44,7 +44,10 @@ def add_config_flags(parser: argparse.ArgumentParser, skip: tuple = ()) -> None:
             continue
         choices = CHOICES.get(f.name)
         metavar = None if choices is not None else typ.__name__.upper()
-        parser.add_argument(flag_name(f.name), type=typ, default=None, choices=choices, metavar=metavar, help=text)
+        # a renamed setting keeps its old flag as a second spelling (train.config.RENAMED), so scripts still run
+        old = [flag_name(k) for k, v in RENAMED.items() if v == f.name]
+        parser.add_argument(flag_name(f.name), *old, dest=f.name, type=typ, default=None, choices=choices,
+                            metavar=metavar, help=text)
 
 
 def config_overrides(args: argparse.Namespace) -> dict:
