@@ -281,11 +281,10 @@ def renamed_keys(data: dict) -> dict:
     if "eval_every" in data:
         out.setdefault("eval_view_stride", data["eval_every"])
     if "save_every" in data:
-        periods = [v for v in (data["save_every"], data.get("checkpoint_every", 0))
-                   if isinstance(v, int) and not isinstance(v, bool) and v > 0]
-        bad = [v for v in (data["save_every"], data.get("checkpoint_every", 0))
-               if not isinstance(v, int) or isinstance(v, bool)]
-        out["checkpoint_every"] = bad[0] if bad else (min(periods) if periods else 0)  # a bad value fails in _coerce
+        periods = (data["save_every"], data.get("checkpoint_every", 0))
+        bad = [v for v in periods if not isinstance(v, int) or isinstance(v, bool)]
+        # a bad value is passed on for _coerce to refuse by name
+        out["checkpoint_every"] = bad[0] if bad else min((v for v in periods if v > 0), default=0)
     return out
 
 
