@@ -149,3 +149,31 @@ def test_eval_with_device_override_reproduces_metrics(work):
     with open(work / "ref" / "eval" / "metrics.json") as f:
         ev = json.load(f)
     assert ev["psnr"] == metrics(work / "ref")["psnr"]
+
+
+@pytest.fixture(scope="module")
+def adaptive_work(tmp_path_factory):
+    """A few-shot run whose G²fR levels open on loss plateaus: the schedule's state must resume too."""
+    d = tmp_path_factory.mktemp("resume_adaptive")
+    (d / "tiny.toml").write_text(TINY + 'g2fr_schedule = "adaptive"\ng2fr_plateau_window = 3\ng2fr_plateau_tol = 0.5\n')
+    return d
+
+
+def adaptive_args(out, config):
+    args = train_args(out, config)
+    args[args.index("pose")] = "fewshot"
+    return args
+
+
+def test_adaptive_schedule_resumes_bit_identical(adaptive_work):
+    d = adaptive_work
+    p = run(adaptive_args(d / "ref", d / "tiny.toml"), d)
+    assert p.returncode == 0, p.stderr
+    opened = json.loads((d / "ref" / "metrics.json").read_text())["g2fr_open_steps"]
+    assert any(10 < s <= 25 for s in opened)  # levels open on both sides of the kill: its state matters
+    out = d / "kill"
+    p = run(adaptive_args(out, d / "tiny.toml"), d, fault="step:25")
+    assert p.returncode == -signal.SIGKILL, p.stderr
+    p = run(resume_args(out), d)
+    assert p.returncode == 0, p.stderr
+    check_matches_reference(d, out)

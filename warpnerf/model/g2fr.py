@@ -32,6 +32,9 @@ G2FR_BETA = 0.5
 # the level ramps this module implements; the config's choices and checks read this registry
 MASK_MODES = ("cosine", "binary")
 
+# what moves tau: the step count (eq. 15, G2fRSchedule) or the training loss (AdaptiveG2fRSchedule)
+SCHEDULES = ("fixed", "adaptive")
+
 
 def g2fr_tau(step: int, total_steps: int, n_levels: int, beta: float) -> float:
     """Optimisation progress tau in [0, n_levels] (paper eq. 15)."""
@@ -139,3 +142,87 @@ class G2fRSchedule:
 
     def active_levels(self, step: int) -> int:
         return len(self.level_weights(step).active)
+
+    def observe(self, step: int, loss: float) -> None:
+        """Eq. 15 depends on the step alone: the loss is not used."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class AdaptiveG2fRSchedule(G2fRSchedule):
+    """G²fR whose tau follows the fit, not a budget: a level opens when the levels already open have
+    fitted what they can (not in the paper).
+
+    Eq. 15 ties tau to ``t / (beta T)``, so the same mask regularises differently at 1000 and at 20k
+    steps (docs/studies/2026-12-07-fewshot-regime.md). Here the trainer reports each step's training
+    loss (:meth:`observe`). Every ``window`` steps the window's mean loss is compared with the best
+    earlier window's: when it is not ``tol`` (relative) below it, the current levels count as fitted
+    and the next level ramps in over the following ``window`` steps (cosine or binary, as in eq. 15).
+    Level 1 is on from the start; tau starts at 1 (eq. 15's first unit of tau ramps no level). The
+    schedule needs no total step count, and a run of any length gets the same mask at the same step.
+
+    Example (a loss that stops improving opens a level each window):
+        >>> s = AdaptiveG2fRSchedule(n_levels=4, window=2, tol=0.02)
+        >>> for t in range(8):
+        ...     s.observe(t, 1.0)
+        >>> s.open_steps, s.active_levels(8)
+        ([4, 6, 8], 3)
+    """
+
+    def __init__(self, n_levels: int, window: int = 50, tol: float = 0.02, mode: str = "cosine", enabled: bool = True):
+        if window < 2:
+            raise ValueError(f"adaptive g2fr window must be >= 2 steps, got {window}")
+        if not 0.0 <= tol < 1.0:
+            raise ValueError(f"adaptive g2fr tol must be in [0, 1), got {tol}")
+        g2fr_level_weight(2, 0.0, mode)
+        self.n_levels, self.mode, self.enabled = n_levels, mode, enabled
+        self.window, self.tol = int(window), float(tol)
+        self.total_steps, self.beta = None, None  # no budget: that is the point
+        self.open_steps: list[int] = []  # the step at which each level from 2 on began to ramp in
+        self._sum, self._count, self._best = 0.0, 0, None
+
+    def tau(self, step: int) -> float:
+        """1 + each level opened by ``step``, ramping over ``window`` steps from its open step (the mask
+        of any step the run has reached, not only the latest)."""
+        return 1.0 + sum(min(max(step - s, 0) / self.window, 1.0) for s in self.open_steps)
+
+    def level_weights(self, step: int) -> LevelWeights:
+        if not self.enabled:
+            return LevelWeights.ones(self.n_levels)
+        tau = self.tau(step)
+        return LevelWeights(tuple(g2fr_level_weight(i + 1, tau, self.mode) for i in range(self.n_levels)))
+
+    def observe(self, step: int, loss: float) -> None:
+        """Add one step's training loss; at the end of a window, open the next level if the loss has plateaued."""
+        if not self.enabled or len(self.open_steps) >= self.n_levels - 1:
+            return
+        self._sum += float(loss)
+        self._count += 1
+        if self._count < self.window:
+            return
+        mean = self._sum / self._count
+        self._sum, self._count = 0.0, 0
+        if self._best is not None and mean >= self._best * (1.0 - self.tol):
+            self.open_steps.append(step + 1)
+        self._best = mean if self._best is None else min(self._best, mean)
+
+    def state_dict(self) -> dict:
+        return {"open_steps": list(self.open_steps), "sum": self._sum, "count": self._count, "best": self._best}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.open_steps = [int(s) for s in state.get("open_steps", [])]
+        self._sum, self._count, self._best = float(state.get("sum", 0.0)), int(state.get("count", 0)), state.get("best")
+
+
+def make_schedule(kind: str, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine",
+                  enabled: bool = True, window: int = 50, tol: float = 0.02) -> G2fRSchedule:
+    """The schedule named ``kind`` (one of :data:`SCHEDULES`)."""
+    if kind == "fixed":
+        return G2fRSchedule(n_levels, total_steps, beta, mode, enabled)
+    if kind == "adaptive":
+        return AdaptiveG2fRSchedule(n_levels, window, tol, mode, enabled)
+    raise ValueError(f"unknown g2fr schedule '{kind}': expected one of {SCHEDULES}")

@@ -162,8 +162,7 @@ def read_run_files(run_dir: str) -> dict:
             config = tomllib.load(fh)
     except (OSError, ValueError) as e:
         raise RecordError(f"cannot record {run_dir}: {e}") from None
-    # bulky per-step series stay in the run folder; the record keeps every scalar and per-view list
-    metrics = {k: v for k, v in metrics.items() if k != "heldout_history"}
+    # the held-out curve (tens of points) stays: the epoch plots are drawn from records
     return {"run": os.path.basename(os.path.normpath(run_dir)), "metrics": metrics, "config": config}
 
 

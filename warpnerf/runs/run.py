@@ -34,7 +34,7 @@ from warpnerf.train.checkpoint import _fault, save_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
 from warpnerf.train.evaluate import evaluate, write_json
 from warpnerf.train.metrics import configure_lpips
-from warpnerf.train.monitor import Monitor
+from warpnerf.train.monitor import Monitor, heldout_split
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer, TrainingError, peak_rss_mb, start_memory_window
 
@@ -247,6 +247,13 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
         "train_seconds": trainer.train_seconds,
         "heldout_seconds": monitor.heldout_seconds,  # part of train_seconds: held-out PSNR renders
         "heldout_history": [list(p) for p in trainer.history["heldout"]],  # [step, held-out PSNR dB] pairs
+        "heldout_epochs": [round(e, 3) for e in trainer.history.get("heldout_epochs", [])],  # epochs at each pair
+        "heldout_split": heldout_split(trainer),
+        "eval_split": cfg.eval_split,
+        "epochs": round(trainer.epochs, 3),  # passes over the training pixels
+        "g2fr_schedule": cfg.g2fr_schedule,
+        "g2fr_open_steps": list(getattr(trainer.schedule, "open_steps", [])),  # adaptive: when each level opened
+        "view_set": cfg.view_set if cfg.task == "fewshot" and not cfg.views.strip() else None,
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),
         "train_view_ids": trainer.views.ids,

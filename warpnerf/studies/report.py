@@ -15,10 +15,12 @@ from typing import Optional
 
 from warpnerf.runs.record import ALONE_MAX_OTHER_CORES, DEFAULT_DIR, RecordError, load_records
 from warpnerf.studies.paper import barf_numbers, paper_numbers
+from warpnerf.train import plots
 
 RESULTS_MD = os.path.join("docs", "results.md")
 README = "README.md"
 BEGIN, END = "<!-- report:headline -->", "<!-- /report:headline -->"
+CURVES_PNG = "fewshot_curves.png"  # in the records folder, beside the records it is drawn from
 
 # The README's headline rows, in order: (record name, what it shows). A name without a record
 # prints as "no record" rather than disappearing.
@@ -127,7 +129,10 @@ def runs_table(rows: list[dict], link_prefix: str) -> str:
 
 def paper_table(task: str, rows: list[dict]) -> str:
     """Ours (mean ± std over the recorded seeds) beside the paper's, per dataset scene and model.
-    Built-in scenes share names with the paper's but are other scenes: they never get paper numbers."""
+    Built-in scenes share names with the paper's but are other scenes: they never get paper numbers.
+    Few-shot has its own table (:func:`fewshot_table`)."""
+    if task == "fewshot":
+        return fewshot_table(rows)
     ours = [r for r in rows if r["metrics"].get("task") == task and r["metrics"].get("scene_source") != "builtin"]
     if not ours:
         return "No record yet."
@@ -166,6 +171,105 @@ def paper_table(task: str, rows: list[dict]) -> str:
                                f"were recorded. Regimes differ: {PAPER_REGIME[task]}.")
 
 
+ARM_LABELS = {"fixed": "w/ G2fR (fixed β)", "adaptive": "w/ G2fR (adaptive)", "none": "w/o"}
+
+
+def arm_of(metrics: dict) -> str:
+    """fixed | adaptive | none: the G²fR arm a run belongs to."""
+    if not metrics.get("g2fr"):
+        return "none"
+    return metrics.get("g2fr_schedule") or "fixed"
+
+
+def regime_of(row: dict) -> str:
+    """The settings that make a few-shot regime, from the run's config (what the records group on)."""
+    c, m = row["config"], row["metrics"]
+    table = c.get("log2_table_size")
+    bg = "random bg" if c.get("random_background") else "fixed bg"
+    size = f"/{c['downscale']}" if c.get("downscale", 1) != 1 else ""
+    return f"{m.get('iters')} it, images{size or ' full size'}, 2^{table} table, {bg}, lr x{c.get('lr_final_ratio')}"
+
+
+def fewshot_groups(rows: list[dict]) -> dict:
+    """(record, scene, view set, regime) -> {arm: {seed: row}} for the few-shot runs measured on test."""
+    groups: dict = {}
+    for r in rows:
+        m = r["metrics"]
+        if m.get("task") != "fewshot" or m.get("eval_split", "test") != "test":
+            continue
+        key = (r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"))
+        groups.setdefault(key, {}).setdefault(arm_of(m), {})[m.get("seed")] = r
+    return groups
+
+
+def paired_gap(arm: dict, base: dict, key: str = "psnr") -> str:
+    """Mean ± std over seeds of arm - w/o, and on how many seeds the arm is at least the baseline."""
+    gaps = [arm[s]["metrics"][key] - base[s]["metrics"][key] for s in sorted(arm, key=str) if s in base]
+    if not gaps:
+        return "n/a"
+    spread = f"{statistics.fmean(gaps):+.2f}" + (f" ± {statistics.stdev(gaps):.2f}" if len(gaps) > 1 else "")
+    return f"{spread} ({sum(g >= 0 for g in gaps)}/{len(gaps)} ≥ 0)"
+
+
+def fewshot_table(rows: list[dict]) -> str:
+    """Tab. 3 beside ours: per record (one regime), scene and view set, each arm's test PSNR / SSIM as
+    mean ± std over seeds, the paired PSNR gap of each masked arm to w/o (same views, seed, noise), and
+    the paper's figure in brackets for the dataset scenes."""
+    groups = fewshot_groups(rows)
+    if not groups:
+        return "No record yet."
+    arms = [a for a in ARM_LABELS if any(a in g for g in groups.values())]
+    head = ["record", "scene", "views", "regime (ours)", "seeds", "epochs (w/o)"]
+    head += [f"PSNR {ARM_LABELS[a]}" for a in arms] + [f"SSIM {ARM_LABELS[a]}" for a in arms]
+    head += [f"PSNR gap {ARM_LABELS[a].split(' ', 1)[1]} − w/o" for a in arms if a != "none"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for (record, scene, view_set, regime, source), by_arm in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        builtin = source == "builtin"
+        paper = {} if builtin else paper_numbers(scene or "", "fewshot", "ngp")
+        seeds = sorted({s for arm in by_arm.values() for s in arm}, key=str)
+        base = by_arm.get("none", {})
+        epochs = _mean_std([r["metrics"].get("epochs") for r in base.values()], 0)
+        name = f"{scene} (built-in procedural, not NeRF-synthetic {scene})" if builtin else str(scene)
+        cells = [record, name, view_set, regime, ",".join(map(str, seeds)), epochs]
+        for key, digits in (("psnr", 2), ("ssim", 3)):
+            for a in arms:
+                cell = _mean_std([r["metrics"].get(key) for r in by_arm.get(a, {}).values()], digits)
+                paper_arm = "w/o" if a == "none" else ("w/" if a == "fixed" else None)
+                if paper_arm in paper and key in paper[paper_arm]:
+                    cell += f" ({paper[paper_arm][key]:.{digits}f})"
+                cells.append(cell)
+        cells += [paired_gap(by_arm.get(a, {}), base) for a in arms if a != "none"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + ("\n\nOurs (test split), then the paper's figure in brackets for the NeRF-synthetic "
+                               "scenes; mean ± std over seeds. The arms of a seed are paired: the same views (fps: "
+                               "farthest-point from view 0, the same for every seed; random: drawn with the seed), seed "
+                               "and ray noise. Epochs are passes over the training pixels. Regimes differ: "
+                               f"{PAPER_REGIME['fewshot']}.")
+
+
+def fewshot_curves(rows: list[dict]) -> dict:
+    """{panel: {arm label: (epochs, mean PSNR, std PSNR)}} of the recorded held-out curves, averaged over
+    seeds at each measured step, one panel per (record, scene, view set): what :func:`write_figures` plots."""
+    panels: dict = {}
+    for (record, scene, view_set, _, _), by_arm in fewshot_groups(rows).items():
+        curves = {}
+        for a, runs in by_arm.items():
+            hists = [(r["metrics"].get("heldout_history") or [], r["metrics"].get("heldout_epochs") or [])
+                     for r in runs.values()]
+            n = min(min(len(h), len(e)) for h, e in hists) if hists else 0
+            if n < 2:
+                continue
+            ep = [statistics.fmean(e[i] for _, e in hists) for i in range(n)]
+            vals = [[h[i][1] for h, _ in hists] for i in range(n)]
+            std = [statistics.stdev(v) if len(v) > 1 else 0.0 for v in vals]
+            split = next(iter(runs.values()))["metrics"].get("heldout_split", "test")
+            curves[f"{ARM_LABELS[a]} ({split}, {len(hists)} seed{'s' if len(hists) > 1 else ''})"] = (
+                ep, [statistics.fmean(v) for v in vals], std)
+        if curves:
+            panels[f"{record}: {scene}, {view_set}"] = curves
+    return panels
+
+
 # --- documents ------------------------------------------------------------------------------------
 
 def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
@@ -192,7 +296,24 @@ def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
     ]
     for task in ("pose", "fewshot"):
         parts += ["", f"## {TASK_TITLES[task]}", "", paper_table(task, rows)]
+    if fewshot_curves(rows):
+        parts += ["", "## Few-shot held-out PSNR against epochs", "",
+                  f"![few-shot curves]({prefix}{CURVES_PNG})", "",
+                  "Mean over the recorded seeds at each measured step, ±1 std shaded; the split each curve was "
+                  "measured on is in its label. Drawn by `warpnerf report` from the records' held-out histories."]
     return "\n".join(parts) + "\n"
+
+
+def write_figures(root: str = ".", records_dir: Optional[str] = None) -> list[str]:
+    """The figures the report links, drawn from the records (not compared by ``--check``: image bytes
+    depend on the matplotlib version)."""
+    rel_dir = records_dir or DEFAULT_DIR
+    panels = fewshot_curves(recorded_runs(load_records(os.path.join(root, rel_dir))))
+    if not panels:
+        return []
+    path = os.path.join(root, rel_dir, CURVES_PNG)
+    plots.plot_band_curves(path, panels, "epochs (passes over the training pixels)", "held-out PSNR (dB)")
+    return [path]
 
 
 def render_readme(readme_text: str, records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
@@ -251,6 +372,8 @@ def run_cli(args) -> int:
         with open(tmp, "w") as fh:
             fh.write(text)
         os.replace(tmp, path)
+        print(f"wrote {path}")
+    for path in write_figures(args.root, args.records):
         print(f"wrote {path}")
     return 0
 

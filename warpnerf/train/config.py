@@ -29,7 +29,7 @@ from dataclasses import dataclass, fields
 from importlib import resources
 from typing import Any, Optional, Union
 
-from warpnerf.model.g2fr import G2FR_BETA, MASK_MODES
+from warpnerf.model.g2fr import G2FR_BETA, MASK_MODES, SCHEDULES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -42,6 +42,10 @@ MODELS = ("ngp", "mtrf")
 
 # where monitor.py sends its scalars
 LOG_MODES = ("none", "tensorboard")
+
+# few-shot view sets (tasks.FewShotTask) and the splits a run can be measured on
+VIEW_SETS = ("fps", "random")
+SPLITS = ("test", "val")
 
 
 class Registry(Sequence):
@@ -106,6 +110,9 @@ class TrainConfig:
     g2fr: bool = False  # mask grid levels coarse to fine
     g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     g2fr_mask: str = "cosine"  # level ramp: cosine (BARF) | binary (on at the end of its ramp)
+    g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss plateaus; no budget needed)
+    g2fr_plateau_window: int = 50  # adaptive: steps per loss window; a level opens when a window's mean loss is not g2fr_plateau_tol below the best earlier window's, and ramps in over one window
+    g2fr_plateau_tol: float = 0.02  # adaptive: the relative loss improvement per window below which the current levels count as fitted
     # --- hash grid and MLPs ---
     levels: int = 16  # grid levels L
     features: int = 2  # features F per grid level
@@ -136,7 +143,8 @@ class TrainConfig:
     learn_guard: bool = True  # stop when the loss stays at the background-only level after warm-up
     # --- tasks ---
     n_views: int = 10  # fewshot: number of training views
-    views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids
+    views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids (overrides view_set)
+    view_set: str = "fps"  # fewshot: fps (farthest-point sampling of camera centres from view 0) | random (n_views drawn with seed)
     pose_noise: Optional[float] = None  # pose: se(3) noise sigma (unset: 0.15 synthetic, 0.01 real)
     pose_noise_rot: Optional[float] = None  # pose: rotation sigma, overrides pose_noise
     pose_noise_trans: Optional[float] = None  # pose: translation sigma, overrides pose_noise
@@ -150,6 +158,7 @@ class TrainConfig:
     # --- evaluation and output ---
     eval_view_stride: int = 8  # evaluate every k-th test view (25 of 200 for Blender scenes)
     eval_max_views: int = 0  # cap on evaluated views (0 = no cap)
+    eval_split: str = "test"  # split the final metrics are measured on: test | val (choose settings on val, report test once)
     video_frames: int = 40  # turntable frames (0 = no video)
     out: str = ""  # run folder ('': runs/<scene>_<task>[_g2fr])
     seed: int = 0  # random seed (views, pose noise, ray sampling, initialisation)
@@ -160,7 +169,8 @@ class TrainConfig:
     # --- monitoring and metrics (warpnerf/train/monitor.py, warpnerf/train/metrics.py) ---
     log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps (pip install 'warpnerf[log]')
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
-    heldout_views: int = 3  # test views (evenly spaced, half resolution) in the held-out PSNR
+    heldout_views: int = 3  # views (evenly spaced, half resolution) in the held-out PSNR
+    heldout_split: str = "val"  # split of the held-out PSNR: val (test where a scene has no val split) | test
     checkpoint_every: int = 500  # steps between checkpoint.pt saves (for --resume; 'warpnerf view' follows them); 0 = only at the end
     lpips_weights: str = ""  # LPIPS(alex) weights: full state-dict file or folder (see metrics.py); "" = auto
 
@@ -178,6 +188,10 @@ CHOICES: dict[str, Sequence] = {
     "task": Registry("warpnerf.train.tasks", "TASKS"),
     "model": MODELS,
     "g2fr_mask": MASK_MODES,
+    "g2fr_schedule": SCHEDULES,
+    "view_set": VIEW_SETS,
+    "eval_split": SPLITS,
+    "heldout_split": SPLITS,
     "log": LOG_MODES,
 }
 
@@ -346,7 +360,7 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
     if cfg.batch_rays < 1 or cfg.target_samples < 1:
         raise ConfigError("batch_rays and target_samples must be >= 1")
-    for name in ("task", "model", "g2fr_mask", "log"):
+    for name in ("task", "model", "g2fr_mask", "g2fr_schedule", "view_set", "eval_split", "heldout_split", "log"):
         check_choice(name, getattr(cfg, name))
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
@@ -363,7 +377,7 @@ def validate(cfg: TrainConfig) -> None:
                 "occ_resolution": 1, "occ_update_every": 1, "march_steps": 1, "max_samples_per_ray": 1,
                 "base_resolution": 1, "max_resolution": 1, "cp_rank": 1, "cp_max_resolution": 1,
                 "log2_table_size": 1, "checkpoint_every": 0, "eval_max_views": 0, "video_frames": 0,
-                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0}
+                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0, "g2fr_plateau_window": 2}
     for key, lo in at_least.items():
         value = getattr(cfg, key)
         if value is not None and value < lo:
@@ -373,6 +387,8 @@ def validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, key)
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a positive finite number, got {value}")
+    if not (0.0 <= cfg.g2fr_plateau_tol < 1.0):  # also rejects NaN
+        raise ConfigError(f"g2fr_plateau_tol must be in [0, 1) (a relative loss improvement), got {cfg.g2fr_plateau_tol}")
     if not 0.0 <= cfg.pose_reregister_at < 1.0:
         raise ConfigError(f"pose_reregister_at must be in [0, 1) (a fraction of the run; 0 = off), got {cfg.pose_reregister_at}")
     if cfg.pose_reregister_passes < 1:

@@ -22,7 +22,7 @@ from warpnerf.data.scene import Views
 from warpnerf.geometry.cameras import PoseCorrection
 from warpnerf.train import metrics as M
 from warpnerf.train.checkpoint import atomic_write_text
-from warpnerf.train.config import exp_decay
+from warpnerf.train.config import ConfigError, exp_decay
 
 if TYPE_CHECKING:  # the trainer's modules import this one
     from warpnerf.train.trainer import Trainer
@@ -92,7 +92,10 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
         return corr(c2w)
 
 def eval_views(trainer: "Trainer") -> Views:
-    test = trainer.scene.test
+    """Every ``eval_view_stride``-th view of the ``eval_split`` (test unless settings are being chosen on val)."""
+    test = getattr(trainer.scene, trainer.cfg.eval_split)
+    if test is None:
+        raise ConfigError(f"eval_split = '{trainer.cfg.eval_split}', but scene '{trainer.scene.name}' has no such split")
     pick = list(range(0, len(test), trainer.cfg.eval_view_stride))
     if trainer.cfg.eval_max_views:
         pick = pick[: trainer.cfg.eval_max_views]

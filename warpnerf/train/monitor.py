@@ -60,6 +60,12 @@ def _area_downscale(img: torch.Tensor, f: int) -> torch.Tensor:
     return img[:h, :w].reshape(h // f, f, w // f, f, -1).mean((1, 3))
 
 
+def heldout_split(trainer) -> str:
+    """The split the held-out PSNR reads: ``cfg.heldout_split``, or test when the scene has no val split."""
+    split = trainer.cfg.heldout_split
+    return split if getattr(trainer.scene, split, None) is not None else "test"
+
+
 class Monitor:
     """The ``Trainer.fit`` callback that records held-out PSNR and writes TensorBoard scalars."""
 
@@ -79,17 +85,20 @@ class Monitor:
             raise ConfigError(f"unknown --log '{cfg.log}': expected none or tensorboard")
         self._heldout = self._heldout_views(trainer) if self.heldout_every > 0 else None
         trainer.history.setdefault("heldout", [])  # (step, PSNR dB) pairs
+        trainer.history.setdefault("heldout_epochs", [])  # the epochs (passes over the training pixels) at each
         trainer.history.setdefault("lipschitz", [])  # (step, L_Psi) pairs
         self._t_last, self._step_last = time.perf_counter(), -1
         self.heldout_seconds = 0.0
 
     def _heldout_views(self, trainer):
-        """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics)."""
-        test = trainer.scene.test
+        """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics) of the
+        ``heldout_split`` (val by default, so that settings chosen on the curve never saw a test view)."""
+        split = heldout_split(trainer)
+        test = getattr(trainer.scene, split)
         k = min(max(int(trainer.cfg.heldout_views), 1), len(test))
         pick = torch.linspace(0, len(test) - 1, k).round().long()
-        # pose task: ground-truth test poses mapped by the current training-camera alignment, no refinement
-        self._test_c2w = lambda: test_cameras(trainer)[pick]
+        # pose task: ground-truth poses mapped by the current training-camera alignment, no refinement
+        self._test_c2w = lambda: test_cameras(trainer, split)[pick]
         f = 2 if min(test.height, test.width) >= 64 else 1  # half resolution: 4x cheaper renders
         images = torch.stack([_area_downscale(test.images[i], f) for i in pick.tolist()])
         return images, test.focal / f, test.cx / f, test.cy / f
@@ -113,6 +122,7 @@ class Monitor:
             value = self.heldout_psnr(trainer, step)
             self.heldout_seconds += time.perf_counter() - t0
             trainer.history["heldout"].append((step, value))
+            trainer.history["heldout_epochs"].append(trainer.epochs)
             values["heldout/psnr"] = value
         if step % self.every == 0 or last:
             now = time.perf_counter()

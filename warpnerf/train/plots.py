@@ -173,6 +173,29 @@ def plot_heldout_curves(path: str, runs: Mapping[str, tuple], title: str = "") -
     return _save(fig, path)
 
 
+def plot_band_curves(path: str, panels: Mapping[str, Mapping[str, tuple]], xlabel: str, ylabel: str,
+                     title: str = "") -> str:
+    """One panel per entry of ``panels`` (panel title -> {label: (x, mean, std)}): each label's mean
+    curve with a band of +-1 std (e.g. PSNR against epochs over seeds). Returns the path."""
+    n = max(len(panels), 1)
+    fig = _figure((4.2 * n, 3.6))
+    axes = fig.subplots(1, n, squeeze=False)[0]
+    for ax, (panel, curves) in zip(axes, panels.items()):
+        for i, (label, (x, mean, std)) in enumerate(curves.items()):
+            colour = _RUN_COLOURS[i % len(_RUN_COLOURS)]
+            x, mean, std = _np(x), _np(mean), _np(std)
+            ax.plot(x, mean, marker="o", markersize=2.5, color=colour, label=label)
+            ax.fill_between(x, mean - std, mean + std, color=colour, alpha=0.2, linewidth=0)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, alpha=0.3)
+        ax.set_title(panel)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
 def _series(values, x_default: Optional[np.ndarray]):
     """(x, y) for one history entry: a list of numbers (x = the shared iteration axis when the
     lengths match, else 0..n-1) or a list of (iteration, value) pairs."""

@@ -93,9 +93,16 @@ def farthest_view_order(c2w: torch.Tensor, n: int, start: int = 0) -> list[int]:
     return chosen
 
 
+def random_view_order(n_total: int, n: int, seed: int) -> list[int]:
+    """``n`` distinct positions of ``n_total``, drawn with their own generator seeded by ``seed``: the
+    same set for both arms of a seed, another set for another seed, whatever else the run draws."""
+    return torch.randperm(n_total, generator=torch.Generator().manual_seed(int(seed)))[:n].tolist()
+
+
 class FewShotTask(Task):
-    """Train on ``n_views`` views: FPS over camera centres from view 0, or ``views`` (a named list
-    such as ``freenerf8``, or comma-separated ids of transforms_train.json)."""
+    """Train on ``n_views`` views: ``view_set`` fps (farthest-point sampling over camera centres from
+    view 0, the same for every seed) or random (drawn with the seed), or ``views`` (a named list such as
+    ``freenerf8``, or comma-separated ids of transforms_train.json)."""
 
     name = "fewshot"
 
@@ -104,6 +111,8 @@ class FewShotTask(Task):
         if not spec:
             if not 1 <= self.cfg.n_views <= len(views):
                 raise ConfigError(f"n_views must be in [1, {len(views)}], got {self.cfg.n_views}")
+            if self.cfg.view_set == "random":
+                return [views.ids[i] for i in random_view_order(len(views), self.cfg.n_views, self.cfg.seed)]
             return [views.ids[i] for i in farthest_view_order(views.c2w, self.cfg.n_views)]
         if spec in NAMED_VIEW_LISTS:
             return list(NAMED_VIEW_LISTS[spec])

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 from warpnerf.data.scene import Scene
 from warpnerf.model.encoders import make_grid_encoder
 from warpnerf.model.field import GridField
-from warpnerf.model.g2fr import G2fRSchedule
+from warpnerf.model.g2fr import make_schedule
 from warpnerf.model.occupancy import OccupancyGrid
 from warpnerf.model.renderer import Renderer, default_step, pixel_rays
 from warpnerf.train import metrics as M
@@ -131,7 +131,8 @@ class Trainer:
                                  cfg.render_step or default_step(scene.aabb, cfg.march_steps),
                                  scene.background, cfg.max_samples_per_ray, sample_budget=cfg.sample_budget)
         self.optimizer = _adam(self.field.param_groups(cfg.lr, cfg.weight_decay_mlp, cfg.cp_lr if mtrf else None), cfg.lr)
-        self.schedule = G2fRSchedule(cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask, enabled=cfg.g2fr)
+        self.schedule = make_schedule(cfg.g2fr_schedule, cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask,
+                                      enabled=cfg.g2fr, window=cfg.g2fr_plateau_window, tol=cfg.g2fr_plateau_tol)
         self.n_rays = cfg.batch_rays
         # a share of the rays drawn where the error is (instant-ngp's error map), importance-weighted
         self.error_map = (ErrorMap(*self.images.shape[:3], share=cfg.error_sampling, device=self.device)
@@ -139,7 +140,8 @@ class Trainer:
         # linear lr warm-up from 1 % (nerfacc): at lr 1e-2 and 2^16 samples a step, thin scenes (mic)
         # diverge without it; capped at a tenth of the run so that short runs keep most of their steps
         self.lr_warmup = min(cfg.lr_warmup, cfg.iters // 10)
-        self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": []}
+        self.history: dict[str, list] = {"step": [], "loss": [], "psnr": [], "samples_per_ray": [], "epochs": []}
+        self.rays_seen = 0  # training rays drawn so far: epochs = rays_seen / training pixels
         self.train_seconds = 0.0
         self.step = 0  # the next step to run (a resumed run starts past 0)
         self.loss_ratio: Optional[float] = None  # EMA of loss / background-only loss (check_learning)
@@ -235,7 +237,14 @@ class Trainer:
         want = cfg.target_samples / max(spr, 1.0)
         self.n_rays = int(min(max(0.5 * self.n_rays + 0.5 * want, 256), 1 << 16))
         # "loss" is the photometric MSE (PSNR, the learning check); a regulariser is not in it
+        self.rays_seen += int(kept)
         return {"loss": mse.item(), "empty_loss": empty_loss.item(), "samples_per_ray": spr}
+
+    @property
+    def epochs(self) -> float:
+        """Passes over the training pixels so far (rays drawn / pixels of the training views): the unit in
+        which runs of different batch sizes and image sizes train equally long."""
+        return self.rays_seen / max(self.images.shape[0] * self.images.shape[1] * self.images.shape[2], 1)
 
     def distortion_ramp(self, step: int) -> float:
         """Share of ``distortion_weight`` applied at ``step``: 0 during the occupancy warm-up, then a
@@ -271,6 +280,7 @@ class Trainer:
         t0 = time.perf_counter()
         for step in bar:
             stats = self.train_step(step)
+            self.schedule.observe(step, stats["loss"])
             r = stats["loss"] / max(stats["empty_loss"], 1e-12)
             self.loss_ratio = r if self.loss_ratio is None else 0.9 * self.loss_ratio + 0.1 * r
             if step % cfg.log_every == 0:
@@ -282,6 +292,7 @@ class Trainer:
                 self.history["loss"].append(stats["loss"])
                 self.history["psnr"].append(psnr)
                 self.history["samples_per_ray"].append(stats["samples_per_ray"])
+                self.history["epochs"].append(self.epochs)
                 bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{psnr:.2f}", rays=self.n_rays,
                                 spr=f"{stats['samples_per_ray']:.0f}", occ=f"{self.occupancy.occupied_fraction():.3f}",
                                 lv=self.schedule.active_levels(step), **extra)
@@ -305,7 +316,7 @@ class Trainer:
                 "occ_density": self.occupancy.density, "occ_bitfield": self.occupancy.bitfield,
                 "rng": rng_state(self.gen), "n_rays": self.n_rays, "loss_ratio": self.loss_ratio,
                 "kept_fraction": self.kept_fraction, "history": self.history, "train_seconds": self.train_seconds,
-                "task": self.task.state_dict(),
+                "task": self.task.state_dict(), "schedule": self.schedule.state_dict(), "rays_seen": self.rays_seen,
                 **({"error_map": self.error_map.state_dict()} if self.error_map is not None else {})}
 
     def load_state_dict(self, state: dict) -> None:
@@ -332,6 +343,8 @@ class Trainer:
         self.history = {k: list(v) for k, v in state["history"].items()}
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.task.load_state_dict(state["task"])
+        self.schedule.load_state_dict(state.get("schedule", {}))
+        self.rays_seen = int(state.get("rays_seen", 0))
         if self.error_map is not None and "error_map" in state:
             self.error_map.load_state_dict(state["error_map"])
 

@@ -21,9 +21,10 @@ def training_cameras(trainer) -> torch.Tensor:
     return trainer.train_c2w.detach().cpu().float()
 
 
-def test_cameras(trainer) -> torch.Tensor:
-    """(N, 3, 4) test cameras in the field's frame (pose task: mapped by the Sim(3) alignment)."""
-    c2w = trainer.scene.test.c2w
+def test_cameras(trainer, split: str = "test") -> torch.Tensor:
+    """(N, 3, 4) cameras of a held-out ``split`` (test or val) in the field's frame (pose task: mapped by
+    the Sim(3) alignment)."""
+    c2w = getattr(trainer.scene, split).c2w
     task = trainer.task
     if hasattr(task, "current_c2w"):
         c2w = map_gt_poses_to_estimate_frame(c2w.to(task.gt_c2w.device).double(), task.evaluate()["sim3"]).float()
