@@ -74,6 +74,63 @@ def test_spec_expands_into_runs_and_rejects_bad_keys(tmp_path):
             expand(load_spec(str(spec_path)))
 
 
+def test_view_sets_seeds_and_arms_expand_into_paired_runs(tmp_path):
+    """view_sets x seeds x arms for the few-shot task (one run per seed and arm for the others); the arms of a
+    (scene, view set, seed) share view set and seed; fps keeps the old folder names, random ends in _random."""
+    import itertools
+
+    spec_path = tmp_path / "s.toml"
+    spec_path.write_text('scenes = ["chair"]\ntasks = ["fewshot", "pose"]\nseeds = [0, 1, 2]\nout = "o"\n'
+                         'arms = ["g2fr", "adaptive", "nog2fr"]\nview_sets = ["fps", "random"]\n')
+    spec = load_spec(str(spec_path))
+    assert spec.view_sets == ["fps", "random"] and spec.arms == ["g2fr", "adaptive", "nog2fr"]
+    runs = expand(spec)
+    fewshot = [r for r in runs if r.task == "fewshot"]
+    pose = [r for r in runs if r.task == "pose"]
+    expected = [(vs, seed, arm) for vs, seed, arm in itertools.product(["fps", "random"], [0, 1, 2],
+                                                                       ["g2fr", "adaptive", "nog2fr"])]
+    assert [(r.view_set, r.seed, r.arm) for r in fewshot] == expected
+    suffix = {"fps": "", "random": "_random"}
+    assert [r.name for r in fewshot] == [f"chair_fewshot_ngp_{arm}_s{seed}{suffix[vs]}" for vs, seed, arm in expected]
+    assert [(r.name, r.view_set) for r in pose] == [(f"chair_pose_ngp_{arm}_s{seed}", None)
+                                                    for seed, arm in itertools.product([0, 1, 2],
+                                                                                       ["g2fr", "adaptive", "nog2fr"])]
+    for r in runs:  # what each arm sets, and the configuration agrees with the run's identity
+        assert (r.cfg.g2fr, r.cfg.g2fr_schedule) == {"g2fr": (True, "fixed"), "adaptive": (True, "adaptive"),
+                                                     "nog2fr": (False, "fixed")}[r.arm]
+        assert r.cfg.seed == r.seed and r.cfg.out == os.path.join("o", r.name)
+    for r in fewshot:
+        assert r.cfg.view_set == r.view_set
+    for i in range(0, len(fewshot), 3):  # a pair (here a triple): adjacent, same view set and seed, all else equal
+        triple = fewshot[i:i + 3]
+        assert len({(r.view_set, r.seed, r.cfg.view_set, r.cfg.seed) for r in triple}) == 1
+        differing = {k for r in triple[1:] for k, v in r.cfg.to_dict().items() if triple[0].cfg.to_dict()[k] != v}
+        assert differing <= {"g2fr", "g2fr_schedule", "out"}
+
+
+def test_spec_view_sets_are_checked(tmp_path):
+    spec_path = tmp_path / "s.toml"
+    spec_path.write_text('scenes = ["chair"]\n')
+    assert load_spec(str(spec_path)).view_sets == ["fps"]
+    assert SweepSpec(scenes=["chair"]).view_sets == ["fps"]
+    for bad, words in (('scenes = ["a"]\nview_sets = ["fps", "sparse"]\n', ("unknown view_set 'sparse'", "fps, random")),
+                       ('scenes = ["a"]\nview_sets = [1]\n', ("'view_sets' must be a list of str",)),
+                       ('scenes = ["a"]\nview_sets = []\n', ("'view_sets' is empty",)),
+                       ('scenes = ["a"]\n[overrides]\nview_set = "random"\n', ("'view_set' is set by the sweep",)),
+                       ('scenes = ["a"]\n[overrides.fewshot]\ng2fr_schedule = "adaptive"\n',
+                        ("'g2fr_schedule' is set by the sweep",)),
+                       ('scenes = ["a"]\narms = ["g2fr", "beta"]\n', ("unknown arm 'beta'", "adaptive"))):
+        spec_path.write_text(bad)
+        with pytest.raises(ConfigError) as exc:
+            load_spec(str(spec_path))
+        msg = str(exc.value)
+        assert "\n" not in msg and all(w in msg for w in words), msg
+    # an explicit views list would make the random view set train on the same views as fps
+    spec_path.write_text('scenes = ["a"]\ntasks = ["fewshot"]\nview_sets = ["random"]\n[overrides]\nviews = "freenerf8"\n')
+    with pytest.raises(ConfigError, match="view set 'random' has no effect"):
+        expand(load_spec(str(spec_path)))
+
+
 @pytest.mark.parametrize("name", ["nerf_synthetic_pose", "lego_fewshot_curve"])
 def test_shipped_specs_expand(name):
     """The specs under configs/sweeps load by name and expand into valid run configurations."""
@@ -133,9 +190,11 @@ def test_killed_sweep_restarted_skips_what_finished(restarted_sweep):
     assert {n for n, s in status.items() if s == "skipped"} == finished_at_kill
     assert status["chair_fewshot_ngp_g2fr_s0"] == "skipped"
     assert all(status[n] == "done" for n in ("chair_fewshot_ngp_nog2fr_s0",) if n not in finished_at_kill)
-    row = next(line for line in res["table"].splitlines() if line.startswith("| chair |"))
+    row = next(line for line in res["table"].splitlines() if line.startswith("| chair "))
     cells = [c.strip() for c in row.strip("| ").split("|")]
-    assert len(cells) == 7 and "n/a" not in cells[1:5]  # PSNR and SSIM of both arms (LPIPS: n/a without weights)
+    assert cells[:2] == ["chair (built-in procedural, not NeRF-synthetic chair)", "fps"]
+    assert len(cells) == 9 and "n/a" not in cells[2:6]  # PSNR and SSIM of both arms (LPIPS: n/a without weights)
+    assert cells[-1].endswith("(1/1)") or cells[-1].endswith("(0/1)")  # the paired PSNR gap of the one seed
     saved = json.loads((spec_path_out(spec) / "sweep.json").read_text())["runs"]
     assert {r["run"]: r["status"] for r in saved} == status
     assert (spec_path_out(spec) / "table.md").read_text() == res["table"]

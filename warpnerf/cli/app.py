@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 
 # torch's OpenMP wait settings, before anything imports torch (the config registry below does): a
 # short spin instead of libgomp's default busy wait or passive wake-ups (warpnerf/openmp.py)
@@ -24,7 +25,7 @@ from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
 from warpnerf.cli.flags import add_config_flags, config_overrides
 from warpnerf.cli.outputs import add_output_commands
-from warpnerf.train.config import MODELS, ConfigError, build_config, load_toml
+from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, build_config, load_toml
 
 
 def _add_device(p: argparse.ArgumentParser) -> None:
@@ -190,6 +191,22 @@ def _seed_list(text: str) -> list[int]:
     return seeds
 
 
+def _name_list(what: str, allowed) -> Callable[[str], list[str]]:
+    """An argparse type: ``a`` or ``a,b`` -> distinct names of ``allowed``, in the given order."""
+
+    def parse(text: str) -> list[str]:
+        names = [t.strip() for t in text.split(",") if t.strip()]
+        for name in names:
+            if name not in allowed:
+                raise argparse.ArgumentTypeError(f"unknown {what} '{name}': expected one or more of "
+                                                 f"{', '.join(allowed)}, comma-separated")
+        if not names or len(set(names)) != len(names):
+            raise argparse.ArgumentTypeError(f"expected distinct {what}s, got '{text}'")
+        return names
+
+    return parse
+
+
 def cmd_table(args) -> int:
     from warpnerf.studies.sweep import report_failures  # lazy: keeps --help fast (torch)
     from warpnerf.studies.table import run_table  # lazy: keeps --help fast (torch)
@@ -198,7 +215,8 @@ def cmd_table(args) -> int:
     recorder = _Recorder(args, "table")
     res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
                     data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
-                    config_file=args.config, threads=args.threads, progress=not args.quiet, overwrite=args.overwrite)
+                    config_file=args.config, threads=args.threads, progress=not args.quiet, overwrite=args.overwrite,
+                    view_sets=args.view_sets, arms=args.arms)
     print(res["table"])
     recorder.write(*_table_record_dirs(res["results"]))
     return report_failures(res["failed"])
@@ -240,6 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--data-root", default=None)
     sc.set_defaults(func=cmd_scenes)
 
+    from warpnerf.studies import sweep  # lazy (torch): 'warpnerf sweep SPEC.toml' (local or Ray backend)
+
     tb = sub.add_parser("table", help="reproduce the paper's tables: runs with and without G2fR")
     tb.add_argument("--scenes", default="lego")
     tb.add_argument("--tasks", default="fewshot,pose")
@@ -249,8 +269,15 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--out", default="runs/table")
     tb.add_argument("--seed", type=_seed_list, default=[0],
                     help="a seed, or comma-separated seeds (e.g. 0,1,2): each arm runs once per seed; the table "
-                         "shows means and the per-seed PSNR gap w/ - w/o")
-    tb.add_argument("--config", default=None, help="TOML file overriding the task presets (both arms)")
+                         "shows means over seeds (few-shot: mean ± std) and the paired PSNR gap of each masked arm to w/o")
+    tb.add_argument("--view-sets", type=_name_list("view set", VIEW_SETS), default=["fps"],
+                    help="few-shot view sets, comma-separated: fps (farthest-point, the same views for every seed), "
+                         "random (drawn with each seed); a table row each (default fps)")
+    tb.add_argument("--arms", type=_name_list("arm", tuple(sweep.ARMS)), default=["g2fr", "nog2fr"],
+                    help="comma-separated: g2fr (G2fR, fixed schedule of eq. 15), adaptive (G2fR, a level opens when "
+                         "the training loss plateaus), nog2fr (no masking); paired per seed and view set "
+                         "(default g2fr,nog2fr)")
+    tb.add_argument("--config", default=None, help="TOML file overriding the task presets (every arm)")
     tb.add_argument("--reuse", action="store_true",
                     help="(always on now: a run folder holding a finished run of the same configuration is read)")
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -259,8 +286,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_device(tb)
     _add_record(tb)
     tb.set_defaults(func=cmd_table)
-    from warpnerf.studies import sweep  # lazy (torch): 'warpnerf sweep SPEC.toml' (local or Ray backend)
-
     sweep.add_parser(sub)
     _add_record(sub.choices["sweep"])
     sub.choices["sweep"].set_defaults(func=cmd_sweep)

@@ -1,8 +1,11 @@
 """``warpnerf sweep SPEC.toml``: the paper's tables as a restartable grid of runs.
 
-A spec names scenes, models, tasks, arms (G²fR on/off), seeds and config overrides; it expands
-into one run per combination, each its own run folder ``<out>/<scene>_<task>_<model>_<arm>_s<seed>``
-built by ``train.config.build_config`` and trained by ``runs.run.run_training``. The results are collected
+A spec names scenes, models, tasks, arms (G²fR with the fixed eq. 15 schedule, with the adaptive
+schedule, or off), seeds, few-shot view sets and config overrides; it expands into one run per
+combination, each its own run folder ``<out>/<scene>_<task>_<model>_<arm>_s<seed>`` (few-shot runs of a
+view set other than ``fps`` end in ``_<view set>``), built by ``train.config.build_config`` and trained
+by ``runs.run.run_training``. The arms of a (scene, view set, seed) are paired: same views, same seed
+(initialisation, ray sampling, pose noise); only the arm's G²fR keys differ. The results are collected
 into ``<out>/table.md`` (Tab. 1/Tab. 3 shaped, the paper's numbers beside ours, see ``tables.py``),
 pose-error plots, and ``<out>/sweep.json`` (status, error and attempts of every run).
 
@@ -26,8 +29,9 @@ Spec format (TOML; paths relative to the current directory, like command-line fl
     scenes = ["lego", "mic"]
     models = ["ngp", "mtrf"]        # default ["ngp"]
     tasks = ["pose"]                # default ["pose", "fewshot"]
-    arms = ["g2fr", "nog2fr"]       # default both
+    arms = ["g2fr", "nog2fr"]       # default; also "adaptive" (G²fR, levels open on loss plateaus)
     seeds = [0]                     # default [0]
+    view_sets = ["fps", "random"]   # few-shot views, default ["fps"] (farthest-point; random: drawn with the seed)
     data_root = "/data"             # optional (default: $WARPNERF_DATA)
     config = "base.toml"            # optional TOML file under the overrides (both arms)
     retries = 1                     # optional
@@ -61,15 +65,22 @@ from tqdm.auto import tqdm
 
 from warpnerf import device as devmod
 from warpnerf.studies.tables import write_tables
-from warpnerf.train.config import MODELS, ConfigError, TrainConfig, build_config, tomllib
+from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, TrainConfig, build_config, tomllib
 
 TASKS = ("full", "fewshot", "pose")
-ARMS = {"g2fr": True, "nog2fr": False}
+# arm name -> the TrainConfig keys that make it; "nog2fr" is the baseline the masked arms are compared with
+ARMS: dict[str, dict] = {
+    "g2fr": {"g2fr": True, "g2fr_schedule": "fixed"},  # paper eq. 15
+    "nog2fr": {"g2fr": False, "g2fr_schedule": "fixed"},
+    "adaptive": {"g2fr": True, "g2fr_schedule": "adaptive"},  # levels open when the training loss plateaus
+}
+BASELINE_ARM = "nog2fr"
+DEFAULT_VIEW_SET = "fps"
 # keys a spec's [overrides] may not set: they are what the sweep itself varies or places
-_SWEPT = ("scene", "task", "model", "g2fr", "seed", "out", "data_root", "threads")
+_SWEPT = ("scene", "task", "model", "g2fr", "g2fr_schedule", "view_set", "seed", "out", "data_root", "threads")
 MACHINE_FILE = "sweep_machine.txt"  # in the run folder: the machine() line of the worker that ran it
-_SPEC_KEYS = {"out", "scenes", "models", "tasks", "arms", "seeds", "data_root", "config", "retries", "resources",
-              "overrides", "device"}
+_SPEC_KEYS = {"out", "scenes", "models", "tasks", "arms", "seeds", "view_sets", "data_root", "config", "retries",
+              "resources", "overrides", "device"}
 
 
 @dataclass
@@ -82,6 +93,7 @@ class SweepSpec:
     tasks: list[str] = field(default_factory=lambda: ["pose", "fewshot"])
     arms: list[str] = field(default_factory=lambda: ["g2fr", "nog2fr"])
     seeds: list[int] = field(default_factory=lambda: [0])
+    view_sets: list[str] = field(default_factory=lambda: [DEFAULT_VIEW_SET])  # few-shot runs only
     out: str = "runs/sweep"
     data_root: Optional[str] = None
     config: Optional[str] = None
@@ -95,7 +107,7 @@ class SweepSpec:
 
     def __post_init__(self):
         for name, values, allowed in (("tasks", self.tasks, TASKS), ("models", self.models, MODELS),
-                                      ("arms", self.arms, tuple(ARMS))):
+                                      ("arms", self.arms, tuple(ARMS)), ("view_sets", self.view_sets, VIEW_SETS)):
             if not values:
                 raise ConfigError(f"sweep spec: '{name}' is empty")
             for v in values:
@@ -142,7 +154,8 @@ def load_spec(path: str) -> SweepSpec:
         return v
 
     kwargs: dict[str, Any] = {}
-    for key, typ in (("scenes", str), ("models", str), ("tasks", str), ("arms", str), ("seeds", int)):
+    for key, typ in (("scenes", str), ("models", str), ("tasks", str), ("arms", str), ("seeds", int),
+                     ("view_sets", str)):
         v = as_list(key, typ)
         if v is not None:
             kwargs[key] = v
@@ -191,17 +204,20 @@ class Run:
     scene: str
     task: str
     model: str
-    arm: str  # g2fr | nog2fr
+    arm: str  # a key of ARMS
     seed: int
     cfg: TrainConfig
+    view_set: Optional[str] = None  # few-shot runs: a name of VIEW_SETS; None for the other tasks
 
     @property
     def name(self) -> str:
         return os.path.basename(self.cfg.run_dir())
 
 
-def run_name(scene: str, task: str, model: str, arm: str, seed: int) -> str:
-    return f"{scene}_{task}_{model}_{arm}_s{seed}"
+def run_name(scene: str, task: str, model: str, arm: str, seed: int, view_set: Optional[str] = None) -> str:
+    """``<scene>_<task>_<model>_<arm>_s<seed>``, plus ``_<view set>`` for a view set other than fps."""
+    suffix = f"_{view_set}" if view_set and view_set != DEFAULT_VIEW_SET else ""
+    return f"{scene}_{task}_{model}_{arm}_s{seed}{suffix}"
 
 
 def _check_inside(out: str, path: str, what: str) -> None:
@@ -212,9 +228,11 @@ def _check_inside(out: str, path: str, what: str) -> None:
 
 
 def expand(spec: SweepSpec) -> list[Run]:
-    """All runs of ``spec`` (task-major, then model, scene, seed, arm: both arms of a row adjacent).
+    """All runs of ``spec`` (task-major, then model, scene, view set, seed, arm: the paired arms of a
+    (scene, view set, seed) adjacent). View sets apply to the few-shot task only.
 
-    Raises ConfigError when a scene name would put a run folder anywhere but directly in ``spec.out``."""
+    Raises ConfigError when a scene name would put a run folder anywhere but directly in ``spec.out``,
+    and when a few-shot view set other than fps would be ignored (an explicit ``views`` list)."""
     for scene in spec.scenes:
         if not isinstance(scene, str) or not scene or scene in (".", "..") or "/" in scene or "\\" in scene \
                 or (os.altsep and os.altsep in scene):
@@ -222,19 +240,30 @@ def expand(spec: SweepSpec) -> list[Run]:
                               f"outside out {spec.out}")
     runs = []
     for task in spec.tasks:
+        view_sets = spec.view_sets if task == "fewshot" else [None]
         for model in spec.models:
             for scene in spec.scenes:
-                for seed in spec.seeds:
-                    for arm in spec.arms:
-                        values = {**spec.overrides, **spec.model_overrides.get(model, {}),
-                                  **spec.task_overrides.get(task, {})}
-                        values.update(scene=scene, model=model, g2fr=ARMS[arm], seed=seed, data_root=spec.data_root,
-                                      device=spec.device,
-                                      out=os.path.join(spec.out, run_name(scene, task, model, arm, seed)))
-                        cfg = build_config(task, spec.config, overrides=values)
-                        _check_inside(spec.out, cfg.run_dir(), f"scene {scene!r}")
-                        runs.append(Run(scene, task, model, arm, seed, cfg))
+                for view_set in view_sets:
+                    for seed in spec.seeds:
+                        for arm in spec.arms:
+                            runs.append(_make_run(spec, task, model, scene, view_set, seed, arm))
     return runs
+
+
+def _make_run(spec: SweepSpec, task: str, model: str, scene: str, view_set: Optional[str], seed: int,
+              arm: str) -> Run:
+    """One run: the spec's overrides (task and model tables win), then what the sweep varies."""
+    values = {**spec.overrides, **spec.model_overrides.get(model, {}), **spec.task_overrides.get(task, {})}
+    values.update(ARMS[arm], scene=scene, model=model, seed=seed, data_root=spec.data_root, device=spec.device,
+                  out=os.path.join(spec.out, run_name(scene, task, model, arm, seed, view_set)))
+    if view_set is not None:
+        values["view_set"] = view_set
+    cfg = build_config(task, spec.config, overrides=values)
+    _check_inside(spec.out, cfg.run_dir(), f"scene {scene!r}")
+    if view_set not in (None, DEFAULT_VIEW_SET) and cfg.views.strip():
+        raise ConfigError(f"sweep spec: view set '{view_set}' has no effect: few-shot runs train on the explicit "
+                          f"views '{cfg.views}'")
+    return Run(scene, task, model, arm, seed, cfg, view_set)
 
 
 # ----------------------------------------------------------------------------- one run (in a worker)
@@ -609,7 +638,8 @@ class SweepError(RuntimeError):
 
 def _write_status(spec: SweepSpec, results: list[RunResult]) -> None:
     rows = [{"run": r.run.name, "run_dir": r.run.cfg.run_dir(), "scene": r.run.scene, "task": r.run.task,
-             "model": r.run.model, "arm": r.run.arm, "seed": r.run.seed, "status": r.status, "error": r.error,
+             "model": r.run.model, "arm": r.run.arm, "seed": r.run.seed, "view_set": r.run.view_set,
+             "status": r.status, "error": r.error,
              "attempts": r.attempts, "seconds": round(r.seconds, 2), "machine": r.machine} for r in results]
     tmp = os.path.join(spec.out, "sweep.json.tmp")
     with open(tmp, "w") as fh:
