@@ -107,3 +107,14 @@ def test_trainer_feeds_the_loss_to_the_adaptive_schedule():
     t.fit(progress=False)
     assert t.schedule.open_steps == [10, 15, 20, 25, 30, 35, 40][: len(t.schedule.open_steps)]
     assert len(t.schedule.open_steps) == 7  # windows ending at steps 9, 14, ..., 39 each opened one level
+
+
+def test_config_names_a_shipped_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no configs/ folder here: the name resolves to the shipped file
+    cfg = build_config("fewshot", "fewshot_paper")
+    assert (cfg.downscale, cfg.log2_table_size, cfg.random_background) == (4, 19, False)
+    assert build_config("fewshot", "fewshot_paper.toml") == cfg
+    (tmp_path / "fewshot_paper.toml").write_text("iters = 7\n")  # a file of that name wins
+    assert build_config("fewshot", "fewshot_paper.toml").iters == 7
+    with pytest.raises(ConfigError, match="not found"):
+        build_config("fewshot", "no_such_preset")

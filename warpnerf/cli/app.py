@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from collections.abc import Callable
 
@@ -25,7 +26,7 @@ from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
 from warpnerf.cli.flags import add_config_flags, config_overrides
 from warpnerf.cli.outputs import add_output_commands
-from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, build_config, load_toml
+from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, build_config, load_toml, resolve_config_file
 
 
 def _add_device(p: argparse.ArgumentParser) -> None:
@@ -121,7 +122,7 @@ def cmd_train(args) -> int:
         # the run's own config, with whatever the command line changes on top (checked against it)
         saved = read_run_config(args.resume)
         task, overrides["out"] = saved.task, args.resume
-        file_values = load_toml(args.config) if args.config else {}
+        file_values = load_toml(resolve_config_file(args.config)) if args.config else {}
         base = {k: v for k, v in saved.to_dict().items() if k != "task"}
         overrides = {**base, **file_values, **{k: v for k, v in overrides.items() if v is not None}}
         cfg = build_config(task, None, overrides)
@@ -237,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it",
                        epilog="Config flags not given keep the value of --config FILE, else of the task preset "
                               "(configs/<task>.toml), else the default shown.")
-    t.add_argument("--config", default=None, help="TOML file overriding the task preset")
+    t.add_argument("--config", default=None, help="TOML file overriding the task preset, or the name of one shipped in configs/ (e.g. fewshot_paper)")
     add_config_flags(t)  # one flag per TrainConfig field (warpnerf/cli/flags.py)
     t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
     t.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -329,16 +330,19 @@ def main(argv: list[str] | None = None) -> int:
         # after parsing, so that --help never loads torch and the trainer for these error types
         from warpnerf.data.errors import DatasetError  # lazy: see above
         from warpnerf.runs.run import TrainingInterrupted  # lazy: see above
+        from warpnerf.studies.sweep import SweepInterrupted  # lazy: see above
         from warpnerf.train.checkpoint import CheckpointError  # lazy: see above
         from warpnerf.train.trainer import TrainingError  # lazy: see above
 
         user_errors += (DatasetError, TrainingError, CheckpointError)
-        interrupted = (TrainingInterrupted,)
+        interrupted = (TrainingInterrupted, SweepInterrupted)
     except ImportError:  # pragma: no cover - partial installs
         pass
     try:
         return int(args.func(args) or 0)
     except interrupted as e:
+        if getattr(e, "command", "") is None:  # a sweep or table: the same command continues it
+            e.command = "warpnerf " + shlex.join(argv)
         print(f"warpnerf: {e}", file=sys.stderr)
         return 130
     except user_errors as e:

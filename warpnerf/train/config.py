@@ -307,6 +307,17 @@ def preset_path(task: str) -> str:
     return str(resources.files("warpnerf.configs").joinpath(f"{task}.toml"))
 
 
+def resolve_config_file(path: str) -> str:
+    """``path`` itself when it exists, else the shipped ``configs/<name>.toml`` it names
+    (``--config fewshot_paper`` works from any folder and after a plain ``pip install``)."""
+    if os.path.exists(path):
+        return path
+    stem = os.path.basename(path)
+    stem = stem[:-5] if stem.endswith(".toml") else stem
+    shipped = str(resources.files("warpnerf.configs").joinpath(f"{stem}.toml"))
+    return shipped if os.path.sep not in path.rstrip(os.path.sep) and os.path.exists(shipped) else path
+
+
 FORWARD_FACING_SUFFIX = "_forward_facing"
 
 
@@ -331,7 +342,7 @@ def build_config(task: str, config_file: Optional[str] = None, overrides: Option
     preset = preset_path(task)
     if os.path.exists(preset):
         values.update(load_toml(preset))
-    file_values = load_toml(config_file) if config_file else {}
+    file_values = load_toml(resolve_config_file(config_file)) if config_file else {}
     overrides = renamed_keys(overrides or {})
     for k in overrides:
         if k not in _field_types():
