@@ -214,3 +214,26 @@ def test_train_record_holds_the_run_folder_and_refuses_a_second_time(tmp_path, m
     assert isinstance(rec["cpu"]["other_cores"], float) or rec["cpu"]["other_cores"] is None
     assert main([*args, "--out", str(tmp_path / "run2")]) == 2
     assert not (tmp_path / "run2").exists()
+
+
+def test_record_command_records_finished_runs_with_their_own_provenance(tmp_path, monkeypatch):
+    """`warpnerf record NAME DIR...`: run folders trained without --record; each run's commit and CPU
+    share are the ones it measured (metrics.json "code" and "cpu"), the busiest run decides 'alone'."""
+    from warpnerf.cli import main
+
+    code = {"commit": "a" * 40, "dirty": False}
+    dirs = []
+    for i, other in enumerate((0.02, 0.6)):
+        m = {**_fewshot_metrics(i, "none", 24.0 + i), "code": code,
+             "cpu": {"wall_seconds": 10.0, "own_cpu_seconds": 9.0, "other_cores": other, "alone": other < 0.1}}
+        dirs.append(_run_folder(tmp_path / f"r{i}", m, 'task = "fewshot"\n'))
+    recs = tmp_path / "recs"
+    assert main(["record", "pilot", *dirs, "--records-dir", str(recs)]) == 0
+    rec = R.load_record(str(recs / "pilot.json"))
+    assert rec["kind"] == "runs" and rec["run_code"] == [code, code]
+    assert rec["cpu"]["other_cores"] == 0.6 and rec["cpu"]["alone"] is False
+    assert [r["metrics"]["psnr"] for r in rec["runs"]] == [24.0, 25.0]
+    assert main(["record", "pilot", *dirs, "--records-dir", str(recs)]) == 2  # exists: refused, one line
+    no_cpu = _run_folder(tmp_path / "old", _fewshot_metrics(0, "none", 20.0), 'task = "fewshot"\n')
+    assert main(["record", "old", no_cpu, "--records-dir", str(recs)]) == 0
+    assert R.load_record(str(recs / "old.json"))["cpu"]["alone"] is None  # not measured: unknown, not "alone"

@@ -81,6 +81,17 @@ def _table_record_dirs(results: list) -> tuple[list[str], dict]:
     return dirs, ({"reused_runs": reused} if reused else {})
 
 
+def cmd_record(args) -> int:
+    """``warpnerf record NAME RUN_DIR...``: a record of run folders that finished without ``--record``."""
+    path = record.check_new_record(args.record, args.records_dir, replace=args.record_replace)
+    runs = [record.read_run_files(d) for d in args.runs]
+    rec = record.build_record(args.record, "runs", args.argv, runs, record.cpu_of_runs(runs),
+                              extra={"run_code": [r["metrics"].get("code") for r in runs]})
+    record.write_record(path, rec)
+    print(f"record: {path} ({len(runs)} run{'s' if len(runs) != 1 else ''}; commit and CPU share as each run measured)")
+    return 0
+
+
 def cmd_sweep(args) -> int:
     from warpnerf.studies import sweep  # lazy: keeps --help fast (torch)
 
@@ -254,6 +265,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true")
     _add_device(e)
     e.set_defaults(func=cmd_eval)
+
+    rc = sub.add_parser("record", help="record run folders that finished without --record (docs/results/NAME.json)")
+    rc.add_argument("record", metavar="NAME", help="the record's name")
+    rc.add_argument("runs", nargs="+", metavar="RUN_DIR", help="finished run folders (metrics.json and config.toml)")
+    rc.add_argument("--records-dir", default=None, help="folder of the records (default docs/results)")
+    rc.add_argument("--record-replace", action="store_true", help="replace an existing record of that name")
+    rc.set_defaults(func=cmd_record)
 
     sc = sub.add_parser("scenes", help="list built-in scenes and dataset scenes found under --data-root")
     sc.add_argument("--data-root", default=None)

@@ -32,6 +32,9 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 FORMAT = "warpnerf-record-1"
+# run: `train --record`; table: `table`/`sweep --record`; runs: `warpnerf record`, finished run folders
+# recorded after they trained (their commit and CPU share come from each run's metrics.json)
+KINDS = ("run", "table", "runs")
 DEFAULT_DIR = os.path.join("docs", "results")
 ALONE_MAX_OTHER_CORES = 0.10  # a tenth of a core on average: daemons and the shell, not a second job
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
@@ -169,8 +172,8 @@ def read_run_files(run_dir: str) -> dict:
 def build_record(name: str, kind: str, argv: list[str], runs: list[dict], cpu: dict, threads: Optional[int] = None,
                  extra: Optional[dict] = None, now: Optional[_dt.datetime] = None) -> dict:
     """The record as a dict. ``runs`` are :func:`read_run_files` results (one for ``train``)."""
-    if kind not in ("run", "table"):
-        raise RecordError(f"record kind {kind!r}: 'run' or 'table'")
+    if kind not in KINDS:
+        raise RecordError(f"record kind {kind!r}: one of {', '.join(KINDS)}")
     now = now or _dt.datetime.now(_dt.timezone.utc)
     rec = {"format": FORMAT, "name": name, "kind": kind,
            "command": "warpnerf " + shlex.join(argv),
@@ -182,6 +185,17 @@ def build_record(name: str, kind: str, argv: list[str], runs: list[dict], cpu: d
     if extra:
         rec.update(extra)
     return rec
+
+
+def cpu_of_runs(runs: list[dict]) -> dict:
+    """The CPU share of runs recorded after they trained, from each run's own measurement
+    (metrics.json "cpu"): the busiest run decides; unknown when any run did not measure."""
+    cpus = [r["metrics"].get("cpu") for r in runs]
+    if not runs or any(not c or c.get("other_cores") is None for c in cpus):
+        return {"wall_seconds": None, "own_cpu_seconds": None, "other_cores": None, "alone": None}
+    other = max(c["other_cores"] for c in cpus)
+    return {"wall_seconds": sum(c["wall_seconds"] for c in cpus), "own_cpu_seconds": sum(c["own_cpu_seconds"] for c in cpus),
+            "other_cores": other, "alone": other < ALONE_MAX_OTHER_CORES}
 
 
 def write_record(path: str, record: dict) -> str:

@@ -24,7 +24,7 @@ import torch
 
 from warpnerf import device as devmod
 from warpnerf.data.errors import DatasetError
-from warpnerf.runs import video
+from warpnerf.runs import record, video
 from warpnerf.runs.folder import (CHECKPOINT, MARKER, RESULT_NEUTRAL_KEYS, RunLock, check_scene, clear_run_folder,
                                   config_hash, folder_state, is_marked, load_scene_for, load_state_checked,
                                   read_checkpoint, read_metrics, read_run_config, resolve_data_root, write_config,
@@ -61,7 +61,11 @@ def _check_writable(out_dir: str) -> None:
 
 
 class TrainingInterrupted(Exception):
-    """SIGINT/SIGTERM: a checkpoint was saved at a step boundary (the CLI exits 130)."""
+    """SIGINT/SIGTERM: a checkpoint was saved at a step boundary ``step`` (the CLI exits 130)."""
+
+    def __init__(self, message: str, step: Optional[int] = None):
+        super().__init__(message)
+        self.step = step
 
 
 def _config_diff(a: TrainConfig, b: TrainConfig) -> list[str]:
@@ -116,6 +120,12 @@ def _on_sigterm(signum, frame):
     raise _Terminated(128 + signum)
 
 
+# What SIGINT/SIGTERM raise out of run_training: TrainingInterrupted in the training loop (a checkpoint
+# was saved at a step boundary), KeyboardInterrupt (SIGINT) or _Terminated (SIGTERM) anywhere else
+# (the folder keeps its last checkpoint). A sweep stops on any of them instead of counting a failure.
+INTERRUPTS: tuple = (TrainingInterrupted, KeyboardInterrupt, _Terminated)
+
+
 def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = False, resume: bool = False,
                  force: bool = False) -> dict:
     """Train and evaluate one configuration; returns the metrics written to metrics.json.
@@ -162,6 +172,7 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
         print(f"{out_dir} is already finished; nothing to do")
         return dict(read_metrics(out_dir), already_finished=True)
     t_start = time.perf_counter()
+    code, cpu_meter = record.git_state(), record.CpuMeter().start()  # the code that trains, and the CPU left to others
     ckpt_path = os.path.join(out_dir, CHECKPOINT)
     state = None
     if mode == "resume" and os.path.exists(ckpt_path):  # a bad checkpoint fails before the scene loads
@@ -215,7 +226,7 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
             save()
         if stop:
             raise TrainingInterrupted(f"interrupted at step {n_done}; checkpoint saved to {ckpt_path}; "
-                                      f"continue with: warpnerf train --resume {out_dir}")
+                                      f"continue with: warpnerf train --resume {out_dir}", step=n_done)
 
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -283,6 +294,8 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
     metrics["peak_rss_mb"] = peak_rss_mb()  # after training, evaluation and video
     metrics["total_seconds"] = time.perf_counter() - t_start
     metrics["config_hash"] = config_hash(cfg)
+    metrics["code"] = code  # {"commit", "dirty"} of the checkout that trained (None outside git)
+    metrics["cpu"] = cpu_meter.stop()  # this process's share of the run: were other processes busy (record.CpuMeter)
     # written once, last and atomically: its presence marks the folder finished
     write_json(os.path.join(out_dir, "metrics.json"), metrics)
     return metrics

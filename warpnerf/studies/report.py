@@ -52,10 +52,13 @@ def recorded_runs(records: list[dict]) -> list[dict]:
     rows = []
     for rec in records:
         for run in rec["runs"]:
+            # a run that measured its own code and CPU share (metrics.json "code", "cpu") speaks for itself;
+            # older runs inherit the record's
+            code = run["metrics"].get("code") or {"commit": rec.get("commit"), "dirty": rec.get("dirty")}
             rows.append({"record": rec["name"], "kind": rec["kind"], "command": rec["command"],
-                         "commit": rec.get("commit"), "dirty": rec.get("dirty"), "date": rec["date"],
-                         "machine": rec["machine"], "cpu": rec["cpu"], "metrics": run["metrics"],
-                         "config": run["config"], "run": run.get("run")})
+                         "commit": code.get("commit"), "dirty": code.get("dirty"), "date": rec["date"],
+                         "machine": rec["machine"], "cpu": run["metrics"].get("cpu") or rec["cpu"],
+                         "metrics": run["metrics"], "config": run["config"], "run": run.get("run")})
     return rows
 
 
