@@ -20,6 +20,8 @@ Restartable: a run whose folder already holds a finished run of the identical co
 (``runs.folder.finished_metrics``) is skipped; a finished run of another configuration is never
 replaced without ``overwrite`` (the sweep refuses before it starts, naming the changed keys); a
 failing run is reported with a one-line error and retried up to ``retries`` times; the others carry on.
+SIGINT (Ctrl-C) or SIGTERM stops the sweep instead: the running training saves its checkpoint, it is not
+retried and nothing else starts (``SweepInterrupted``, exit 130); the same command again resumes it.
 ``out`` (and ``data_root``) are made absolute on the driver, so every worker writes where the driver
 looks, whatever its working directory; scene names cannot lead a run folder or log outside ``out``.
 
@@ -51,6 +53,7 @@ import json
 import multiprocessing as mp
 import os
 import platform
+import signal
 import sys
 import time
 import traceback
@@ -173,6 +176,8 @@ def load_spec(path: str) -> SweepSpec:
     if "num_gpus" in res:
         kwargs["num_gpus"] = res["num_gpus"]
     flat, per_task, per_model = {}, {}, {}
+    if not isinstance(data.get("overrides", {}), dict):
+        raise ConfigError(f"{path}: 'overrides' must be a table ([overrides]), got {data['overrides']!r}")
     for key, value in data.get("overrides", {}).items():
         if isinstance(value, dict):
             if key in TASKS:
@@ -337,10 +342,12 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
     not part of the configuration and a restart with another worker count still skips).
     ``log_path``: the run's output goes to this file (and to stdout as well with ``stream``).
     ``overwrite``: a finished run of another configuration in the folder is replaced (else: failed).
+    SIGINT/SIGTERM during the run give ``{"status": "interrupted", "error": one line}``: the folder keeps
+    its checkpoint (saved at the step boundary when the signal came during training) for a restart.
     """
     # lazy: the command line imports this module to build its parser, and runs/ brings the whole trainer
     # (~0.13 s on top of --help); a worker loads it here, before its output goes to the run's log
-    from warpnerf.runs.run import run_training  # noqa: F401
+    from warpnerf.runs.run import INTERRUPTS
 
     result: dict = {"machine": machine()}
     log = None
@@ -360,11 +367,15 @@ def execute_run(cfg_values: dict, threads: Optional[int] = None, log_path: Optio
                 # where it ran, for the table's note when a restarted sweep skips this run
                 with open(os.path.join(cfg.run_dir(), MACHINE_FILE), "w") as fh:
                     fh.write(result["machine"] + "\n")
+            except INTERRUPTS as e:  # SIGINT/SIGTERM: the sweep stops (not a failure, not retried)
+                step = getattr(e, "step", None)
+                result.update(status="interrupted", error=f"stopped at step {step}, checkpoint saved" if step
+                              is not None else f"stopped ({type(e).__name__}), its last checkpoint kept")
             except BaseException as e:  # noqa: BLE001 - any failure of a run is reported, not raised
-                if isinstance(e, KeyboardInterrupt):
-                    raise
                 traceback.print_exc()
                 result.update(status="failed", error=_one_line(e))
+    except KeyboardInterrupt:  # SIGINT (or the sweep's SIGTERM) while the log was being opened
+        result.update(status="interrupted", error="stopped before it started")
     except Exception as e:  # noqa: BLE001 - setup failures (bad values, unwritable log)
         result.update(status="failed", error=_one_line(e))
     finally:
@@ -395,12 +406,18 @@ def _worker_entry(cfg_values: dict, threads: Optional[int], log_path: str, overw
     return execute_run(cfg_values, threads, log_path, overwrite=overwrite)
 
 
+def _worker_init() -> None:
+    """A local worker ignores SIGINT: Ctrl-C reaches the whole process group, and an idle worker would die
+    with a traceback. The driver forwards the stop as SIGTERM, which a training run turns into a checkpoint."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 # ----------------------------------------------------------------------------- backends
 
 @dataclass
 class RunResult:
     run: Run
-    status: str = "pending"  # skipped | done | failed
+    status: str = "pending"  # skipped | done | failed | interrupted (SIGINT/SIGTERM stopped it)
     metrics: Optional[dict] = None
     error: str = ""
     attempts: int = 0
@@ -429,7 +446,9 @@ class _Progress:
     def finished(self, res: RunResult, final: bool):
         """``final``: no retry follows (a failure counts as failed, success as done)."""
         self.counts["running"] -= 1
-        if res.status == "done":
+        if res.status == "interrupted":
+            self.write(f"STOPPED {res.run.name}: {res.error}")
+        elif res.status == "done":
             self.counts["done"] += 1
             self.bar.update(1)
             m = res.metrics or {}
@@ -474,41 +493,72 @@ def _run_local(pending: list[RunResult], spec: SweepSpec, retries: int, workers:
                 t0 = time.perf_counter()
                 out = execute_run(res.run.cfg.to_dict(), threads, _log_path(res.run), overwrite=overwrite)
                 _settle(res, out, time.perf_counter() - t0)
-                final = res.status == "done" or res.attempts > retries
+                final = res.status in ("done", "interrupted") or res.attempts > retries
                 progress.finished(res, final)
+                if res.status == "interrupted":
+                    return  # the sweep stops: nothing else starts
                 if final:
                     break
         return
     ctx = mp.get_context("spawn")
     queue = list(pending)
     running: dict = {}
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1)
+
+    def new_pool() -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1,
+                                   initializer=_worker_init)
+
+    pool = new_pool()
+    stopping = False
+
+    def stop_workers(sig) -> None:
+        # private attribute, but the only way to reach the workers; a worker gone already is fine
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            with contextlib.suppress(Exception):
+                proc.kill() if sig == signal.SIGKILL else os.kill(proc.pid, sig)
+
     try:
-        while queue or running:
-            while queue and len(running) < workers:
+        while running or (queue and not stopping):
+            while queue and not stopping and len(running) < workers:
                 res = queue.pop(0)
                 res.attempts += 1
                 progress.started()
                 fut = pool.submit(_worker_entry, res.run.cfg.to_dict(), threads, _log_path(res.run), overwrite)
                 running[fut] = (res, time.perf_counter())
-            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            try:
+                done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            except KeyboardInterrupt:  # SIGINT/SIGTERM to the driver: the running trainings checkpoint and stop
+                if stopping:  # a second one: do not wait for the checkpoints
+                    stop_workers(signal.SIGKILL)
+                    for res, _ in running.values():
+                        res.status, res.error = "interrupted", "worker killed by a second interrupt"
+                    running.clear()
+                    break
+                stopping = True
+                stop_workers(signal.SIGTERM)
+                continue
             for fut in done:
                 res, t0 = running.pop(fut)
                 try:
                     out = fut.result()
                 except BrokenProcessPool:
-                    # a worker died (killed, out of memory): that run failed; start a fresh pool for the rest
-                    out = {"status": "failed", "error": "worker process died (killed or out of memory)"}
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    for other, (ores, _) in list(running.items()):  # their futures are broken too: resubmit
-                        ores.attempts -= 1
-                        queue.insert(0, ores)
-                        progress.counts["running"] -= 1
-                        running.pop(other)
-                    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1)
+                    if stopping:  # the interrupt ended the worker
+                        out = {"status": "interrupted", "error": "worker process ended by the interrupt"}
+                    else:  # a worker died (killed, out of memory): that run failed; a fresh pool for the rest
+                        out = {"status": "failed", "error": "worker process died (killed or out of memory)"}
+                        pool.shutdown(wait=False, cancel_futures=True)
+                        for other, (ores, _) in list(running.items()):  # their futures are broken too: resubmit
+                            ores.attempts -= 1
+                            queue.insert(0, ores)
+                            progress.counts["running"] -= 1
+                            running.pop(other)
+                        pool = new_pool()
                 _settle(res, out, time.perf_counter() - t0)
-                final = res.status == "done" or res.attempts > retries
+                final = res.status in ("done", "interrupted") or res.attempts > retries
                 progress.finished(res, final)
+                if res.status == "interrupted" and not stopping:  # a signal reached a worker: stop the others too
+                    stopping = True
+                    stop_workers(signal.SIGTERM)
                 if not final:
                     queue.append(res)
     finally:
@@ -540,7 +590,14 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
     for res in pending:
         submit(res)  # Ray queues what does not fit the cluster's free resources
     while running:
-        done, _ = ray.wait(list(running), num_returns=1)
+        try:
+            done, _ = ray.wait(list(running), num_returns=1)
+        except KeyboardInterrupt:  # cancelled tasks keep their last periodic checkpoint for the restart
+            for ref, (res, _) in running.items():
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref)
+                res.status, res.error = "interrupted", "Ray task cancelled, its last checkpoint kept"
+            return
         ref = done[0]
         res, t0 = running.pop(ref)
         try:
@@ -548,8 +605,15 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
         except Exception as e:  # noqa: BLE001 - worker crash, node lost: the run failed
             out = {"status": "failed", "error": _one_line(e)}
         _settle(res, out, time.perf_counter() - t0)
-        final = res.status == "done" or res.attempts > retries
+        final = res.status in ("done", "interrupted") or res.attempts > retries
         progress.finished(res, final)
+        if res.status == "interrupted":  # a signal reached the worker: stop the sweep
+            for other in running:
+                with contextlib.suppress(Exception):
+                    ray.cancel(other)
+            for other_res, _ in running.values():
+                other_res.status, other_res.error = "interrupted", "Ray task cancelled, its last checkpoint kept"
+            return
         if not final:
             submit(res)
 
@@ -568,7 +632,9 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
               retries: Optional[int] = None, progress: bool = True, overwrite: bool = False) -> dict:
     """Run (or skip) every run of ``spec`` and write ``table.md``, plots and ``sweep.json`` under ``spec.out``.
 
-    Returns ``{"results": [RunResult], "table": markdown, "failed": [RunResult]}``.
+    Returns ``{"results": [RunResult], "table": markdown, "failed": [RunResult]}``. SIGINT/SIGTERM stop the
+    sweep: the running trainings save a checkpoint, nothing else starts, ``sweep.json`` is written and
+    ``SweepInterrupted`` raised (the same call again skips the finished runs and resumes the stopped ones).
     Raises ``ConfigError`` for a bad spec, for a scene name that leads outside ``spec.out`` and, without
     ``overwrite``, for a run folder holding a finished run of another configuration (nothing is
     written then); ``SweepError`` when the Ray backend is not installed.
@@ -618,15 +684,21 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
     bar = _Progress(len(results), len(results) - len(pending), progress)
     bar.write(f"sweep: {len(results)} runs, {len(results) - len(pending)} already finished (skipped), "
               f"{len(pending)} to run on the {backend} backend")
+    stopped = False
     try:
-        if pending:
-            if backend == "ray":
-                _run_ray(pending, spec, retries, ray_address, bar, overwrite)
-            else:
-                _run_local(pending, spec, retries, workers, bar, overwrite)
+        with _sigterm_as_interrupt():
+            if pending:
+                if backend == "ray":
+                    _run_ray(pending, spec, retries, ray_address, bar, overwrite)
+                else:
+                    _run_local(pending, spec, retries, workers, bar, overwrite)
+    except KeyboardInterrupt:  # in the driver between two runs
+        stopped = True
     finally:
         bar.close()
         _write_status(spec, results)
+    if stopped or any(r.status == "interrupted" for r in results):
+        raise SweepInterrupted(_interrupted_summary(results))
     text = write_tables(spec, results)
     failed = [r for r in results if r.status == "failed"]
     return {"results": results, "table": text, "failed": failed}
@@ -634,6 +706,46 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
 
 class SweepError(RuntimeError):
     """A sweep that cannot start (e.g. the Ray backend without Ray installed); one line."""
+
+
+class SweepInterrupted(Exception):
+    """SIGINT/SIGTERM stopped the sweep (the CLI exits 130). ``command``: the command line that continues
+    it, for the message (the CLI sets it; else the message says to run the same command again)."""
+
+    def __init__(self, summary: str, command: Optional[str] = None):
+        super().__init__(summary)
+        self.summary, self.command = summary, command
+
+    def __str__(self) -> str:
+        how = f"continue with: {self.command}" if self.command else "run the same command again to continue"
+        return f"{self.summary}; {how} (finished runs are skipped, stopped ones resume)"
+
+
+def _interrupted_summary(results: list[RunResult]) -> str:
+    stopped = [r for r in results if r.status == "interrupted"]
+    finished = sum(r.status in ("done", "skipped") for r in results)
+    what = "; ".join(f"{r.run.name} {r.error}" for r in stopped[:3]) + \
+        (f" (and {len(stopped) - 3} more)" if len(stopped) > 3 else "")
+    return f"sweep interrupted: {what or 'between runs'}; {finished} of {len(results)} runs finished"
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt in the driver, as SIGINT does (main thread only): a training run
+    replaces it with its own checkpointing handler while it runs and puts this one back after."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def _write_status(spec: SweepSpec, results: list[RunResult]) -> None:
