@@ -160,3 +160,24 @@ def test_every_capture_layout_refuses_a_bad_focal(tmp_path, fx):
               for k in range(3)]
     with pytest.raises(DatasetError, match=r"sparse/0/cameras.txt \(image 0.png\).*focal"):
         build_scene(frames, None, str(tmp_path), "colmap", "sparse/0/cameras.txt")
+
+
+# --- sweep specs: a bad retries or resources value is one line, before anything is written ---------------
+
+
+@pytest.mark.parametrize("line, needle", [
+    ('retries = "abc"', "'retries' must be a whole number >= 0, got 'abc'"),
+    ("retries = 1.5", "'retries' must be a whole number >= 0, got 1.5"),
+    ("retries = true", "'retries' must be a whole number >= 0, got True"),
+    ("retries = -1", "'retries' must be a whole number >= 0, got -1"),
+    ('resources = "many"', "'resources' must be a table"),
+    ('[resources]\nnum_cpus = "two"', "num_cpus must be a number > 0"),
+    ("[resources]\nnum_cpus = 0", "num_cpus must be a number > 0"),
+    ("[resources]\nnum_gpus = -1", "num_gpus must be a number >= 0"),
+    ("[resources]\nnum_gpus = nan", "num_gpus must be a number >= 0"),
+    ('overrides = 3', "'overrides' must be a table"),
+])
+def test_sweep_spec_bad_retries_and_resources(tmp_path, capsys, line, needle):
+    spec = tmp_path / "s.toml"
+    spec.write_text(f'out = "{tmp_path / "out"}"\nscenes = ["chair"]\n{line}\n')
+    refused(tmp_path, capsys, ["sweep", str(spec), "--quiet"], "s.toml", needle)

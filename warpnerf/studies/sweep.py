@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import multiprocessing as mp
 import os
 import platform
@@ -166,11 +167,21 @@ def load_spec(path: str) -> SweepSpec:
         if key in data:
             kwargs[key] = str(data[key])
     if "retries" in data:
-        kwargs["retries"] = int(data["retries"])
+        r = data["retries"]
+        if not isinstance(r, int) or isinstance(r, bool) or r < 0:
+            raise ConfigError(f"{path}: 'retries' must be a whole number >= 0, got {r!r}")
+        kwargs["retries"] = r
     res = data.get("resources", {})
+    if not isinstance(res, dict):
+        raise ConfigError(f"{path}: 'resources' must be a table ([resources]), got {res!r}")
     for key in res:
         if key not in ("num_cpus", "num_gpus"):
             raise ConfigError(f"{path}: unknown [resources] key '{key}' (expected num_cpus, num_gpus)")
+        v = res[key]
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0 \
+                or (key == "num_cpus" and v == 0):
+            raise ConfigError(f"{path}: [resources] {key} must be a number {'> 0' if key == 'num_cpus' else '>= 0'}, "
+                              f"got {v!r}")
     if "num_cpus" in res:
         kwargs["num_cpus"] = res["num_cpus"]
     if "num_gpus" in res:
