@@ -71,8 +71,8 @@ def test_adaptive_opens_a_level_per_plateaued_window():
     losses = [1.0] * 4 + [0.5] * 4 + [0.48] * 4 + [0.3] * 4 + [0.29] * 4
     for step, loss in enumerate(losses):
         s.observe(step, loss)
-    # windows: 1.0 (first, the reference), 0.5 (-50 %: fitting), 0.48 (-4 %: plateau, opens at 12),
-    # 0.3 (-37.5 %), 0.29 (-3.3 %: opens at 20)
+    # window gains: 0.5 -> 50 % (the largest), 0.48 -> 4 % <= 0.1 x 50 %: opens at 12 (and the largest resets);
+    # 0.3 -> 37.5 %, 0.29 -> 3.3 % <= 0.1 x 37.5 %: opens at 20
     assert s.open_steps == [12, 20]
     for step in (12, 14, 16, 20, 22, 40):
         tau = 1 + sum(min(max(step - o, 0) / 4, 1.0) for o in s.open_steps)
@@ -97,13 +97,15 @@ def test_make_schedule_and_bad_values():
         make_schedule("plateau", 4, 100)
     with pytest.raises(ConfigError, match="g2fr_plateau_tol"):
         build_config("fewshot", overrides=dict(g2fr_plateau_tol=1.5))
+    with pytest.raises(ConfigError, match="g2fr_plateau_tol"):
+        build_config("fewshot", overrides=dict(g2fr_plateau_tol=float("nan")))
     with pytest.raises(ConfigError, match="g2fr_plateau_window"):
         build_config("fewshot", overrides=dict(g2fr_plateau_window=1))
 
 
 def test_trainer_feeds_the_loss_to_the_adaptive_schedule():
     t = make_trainer("fewshot", n_views=6, iters=40, g2fr=True, g2fr_schedule="adaptive", g2fr_plateau_window=5,
-                     g2fr_plateau_tol=0.99)  # tol 0.99: every window after the first is a "plateau"
+                     g2fr_plateau_tol=1.0)  # tol 1: no gain exceeds the largest, so every window after the first opens
     t.fit(progress=False)
     assert t.schedule.open_steps == [10, 15, 20, 25, 30, 35, 40][: len(t.schedule.open_steps)]
     assert len(t.schedule.open_steps) == 7  # windows ending at steps 9, 14, ..., 39 each opened one level

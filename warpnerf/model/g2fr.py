@@ -155,35 +155,36 @@ class G2fRSchedule:
 
 class AdaptiveG2fRSchedule(G2fRSchedule):
     """G²fR whose tau follows the fit, not a budget: a level opens when the levels already open have
-    fitted what they can (not in the paper).
+    stopped paying off (not in the paper).
 
     Eq. 15 ties tau to ``t / (beta T)``, so the same mask regularises differently at 1000 and at 20k
     steps (docs/studies/2026-12-07-fewshot-regime.md). Here the trainer reports each step's training
-    loss (:meth:`observe`). Every ``window`` steps the window's mean loss is compared with the best
-    earlier window's: when it is not ``tol`` (relative) below it, the current levels count as fitted
-    and the next level ramps in over the following ``window`` steps (cosine or binary, as in eq. 15).
-    Level 1 is on from the start; tau starts at 1 (eq. 15's first unit of tau ramps no level). The
-    schedule needs no total step count, and a run of any length gets the same mask at the same step.
+    loss (:meth:`observe`). At the end of every ``window`` steps the window's mean loss is compared with
+    the previous window's: its relative improvement is the window's *gain*. When a gain falls to ``tol``
+    times the largest gain since the last level opened, the open levels count as fitted and the next
+    level ramps in over the following ``window`` steps (cosine or binary, as in eq. 15). The test is a
+    ratio, so it needs no loss scale. Level 1 is on from the start; tau starts at 1 (eq. 15's first unit
+    of tau ramps no level). No total step count enters: runs of any length share the mask step by step.
 
     Example (a loss that stops improving opens a level each window):
-        >>> s = AdaptiveG2fRSchedule(n_levels=4, window=2, tol=0.02)
+        >>> s = AdaptiveG2fRSchedule(n_levels=4, window=2, tol=0.25)
         >>> for t in range(8):
         ...     s.observe(t, 1.0)
         >>> s.open_steps, s.active_levels(8)
         ([4, 6, 8], 3)
     """
 
-    def __init__(self, n_levels: int, window: int = 50, tol: float = 0.02, mode: str = "cosine", enabled: bool = True):
+    def __init__(self, n_levels: int, window: int = 50, tol: float = 0.25, mode: str = "cosine", enabled: bool = True):
         if window < 2:
             raise ValueError(f"adaptive g2fr window must be >= 2 steps, got {window}")
-        if not 0.0 <= tol < 1.0:
-            raise ValueError(f"adaptive g2fr tol must be in [0, 1), got {tol}")
+        if not 0.0 <= tol <= 1.0:
+            raise ValueError(f"adaptive g2fr tol must be in [0, 1], got {tol}")
         g2fr_level_weight(2, 0.0, mode)
         self.n_levels, self.mode, self.enabled = n_levels, mode, enabled
         self.window, self.tol = int(window), float(tol)
         self.total_steps, self.beta = None, None  # no budget: that is the point
         self.open_steps: list[int] = []  # the step at which each level from 2 on began to ramp in
-        self._sum, self._count, self._best = 0.0, 0, None
+        self._sum, self._count, self._last, self._peak = 0.0, 0, None, 0.0
 
     def tau(self, step: int) -> float:
         """1 + each level opened by ``step``, ramping over ``window`` steps from its open step (the mask
@@ -197,7 +198,8 @@ class AdaptiveG2fRSchedule(G2fRSchedule):
         return LevelWeights(tuple(g2fr_level_weight(i + 1, tau, self.mode) for i in range(self.n_levels)))
 
     def observe(self, step: int, loss: float) -> None:
-        """Add one step's training loss; at the end of a window, open the next level if the loss has plateaued."""
+        """Add one step's training loss; at the end of a window, open the next level if the loss has stopped
+        improving at the pace it had since the last level opened."""
         if not self.enabled or len(self.open_steps) >= self.n_levels - 1:
             return
         self._sum += float(loss)
@@ -206,20 +208,26 @@ class AdaptiveG2fRSchedule(G2fRSchedule):
             return
         mean = self._sum / self._count
         self._sum, self._count = 0.0, 0
-        if self._best is not None and mean >= self._best * (1.0 - self.tol):
-            self.open_steps.append(step + 1)
-        self._best = mean if self._best is None else min(self._best, mean)
+        if self._last is not None:
+            gain = (self._last - mean) / max(self._last, 1e-30)  # this window's relative improvement
+            self._peak = max(self._peak, gain)
+            if gain <= self.tol * self._peak:
+                self.open_steps.append(step + 1)
+                self._peak = 0.0
+        self._last = mean
 
     def state_dict(self) -> dict:
-        return {"open_steps": list(self.open_steps), "sum": self._sum, "count": self._count, "best": self._best}
+        return {"open_steps": list(self.open_steps), "sum": self._sum, "count": self._count, "last": self._last,
+                "peak": self._peak}
 
     def load_state_dict(self, state: dict) -> None:
         self.open_steps = [int(s) for s in state.get("open_steps", [])]
-        self._sum, self._count, self._best = float(state.get("sum", 0.0)), int(state.get("count", 0)), state.get("best")
+        self._sum, self._count = float(state.get("sum", 0.0)), int(state.get("count", 0))
+        self._last, self._peak = state.get("last"), float(state.get("peak", 0.0))
 
 
 def make_schedule(kind: str, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine",
-                  enabled: bool = True, window: int = 50, tol: float = 0.02) -> G2fRSchedule:
+                  enabled: bool = True, window: int = 50, tol: float = 0.25) -> G2fRSchedule:
     """The schedule named ``kind`` (one of :data:`SCHEDULES`)."""
     if kind == "fixed":
         return G2fRSchedule(n_levels, total_steps, beta, mode, enabled)

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from warpnerf.model.encoders import HashGridEncoder, PositionalEncoder
-from warpnerf.model.g2fr import G2FR_BETA, G2fRSchedule
+from warpnerf.model.g2fr import G2FR_BETA, make_schedule
 from warpnerf.ops.hashgrid_spec import HashGridSpec
 
 __all__ = [
@@ -401,6 +401,9 @@ class FitConfig:
     g2fr: bool = True  # apply the mask; False trains all levels from step 0
     beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     mask_mode: str = "cosine"  # "cosine" (BARF ramp) or "binary"
+    schedule: str = "fixed"  # "fixed" (eq. 15 over beta of the steps) or "adaptive" (a level opens on a loss plateau)
+    plateau_window: int = 10  # adaptive: steps per loss window (model.g2fr.AdaptiveG2fRSchedule)
+    plateau_tol: float = 0.25  # adaptive: the next level opens when a window's gain falls to this share of the largest since the last opened
     # positional encoding baseline
     pe_n_freqs: int = 7  # frequencies 2^k·π rad, k < n: 0.5 … 32 cycles per unit length
 
@@ -500,6 +503,8 @@ def _fit_loop(cfg: FitConfig, encode, params: list, mlp, weights_at, n_groups: i
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if hasattr(weights_at, "observe"):  # an adaptive schedule opens levels from the loss
+            weights_at.observe(step, float(loss.detach()))
         if step % cfg.record_every == 0 or step == cfg.steps:
             record(step, w)
 
@@ -534,7 +539,8 @@ def fit_grid_1d(cfg: FitConfig | None = None, signal: Callable[[np.ndarray], np.
         torch.manual_seed(cfg.seed)
         grid = HashGridEncoder(spec, init_scale=cfg.init_scale)  # the project's Warp encoding
         mlp = _mlp(spec.out_dim, cfg)
-    schedule = G2fRSchedule(spec.n_levels, cfg.steps, cfg.beta, cfg.mask_mode, enabled=cfg.g2fr)
+    schedule = make_schedule(cfg.schedule, spec.n_levels, cfg.steps, cfg.beta, cfg.mask_mode, enabled=cfg.g2fr,
+                             window=cfg.plateau_window, tol=cfg.plateau_tol)
 
     out = _fit(cfg, grid, [grid.table], mlp, schedule, spec.n_levels, spec.n_features, signal)
     cells = torch.tensor([s - 1 for s in spec.resolutions], dtype=torch.float32)

@@ -110,9 +110,9 @@ class TrainConfig:
     g2fr: bool = False  # mask grid levels coarse to fine
     g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     g2fr_mask: str = "cosine"  # level ramp: cosine (BARF) | binary (on at the end of its ramp)
-    g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss plateaus; no budget needed)
-    g2fr_plateau_window: int = 50  # adaptive: steps per loss window; a level opens when a window's mean loss is not g2fr_plateau_tol below the best earlier window's, and ramps in over one window
-    g2fr_plateau_tol: float = 0.02  # adaptive: the relative loss improvement per window below which the current levels count as fitted
+    g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss stops improving; no budget needed)
+    g2fr_plateau_window: int = 50  # adaptive: steps per loss window; a new level ramps in over one window
+    g2fr_plateau_tol: float = 0.25  # adaptive: the next level opens when a window's relative loss improvement falls to this fraction of the largest since the last level opened
     # --- hash grid and MLPs ---
     levels: int = 16  # grid levels L
     features: int = 2  # features F per grid level
@@ -398,8 +398,9 @@ def validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, key)
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a positive finite number, got {value}")
-    if not (0.0 <= cfg.g2fr_plateau_tol < 1.0):  # also rejects NaN
-        raise ConfigError(f"g2fr_plateau_tol must be in [0, 1) (a relative loss improvement), got {cfg.g2fr_plateau_tol}")
+    if not (0.0 <= cfg.g2fr_plateau_tol <= 1.0):  # also rejects NaN
+        raise ConfigError(f"g2fr_plateau_tol must be in [0, 1] (a share of the largest recent improvement), "
+                          f"got {cfg.g2fr_plateau_tol}")
     if not 0.0 <= cfg.pose_reregister_at < 1.0:
         raise ConfigError(f"pose_reregister_at must be in [0, 1) (a fraction of the run; 0 = off), got {cfg.pose_reregister_at}")
     if cfg.pose_reregister_passes < 1:
