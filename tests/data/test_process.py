@@ -86,3 +86,93 @@ def test_process_bad_input_is_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["process", "--images", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
     assert "no images" in capsys.readouterr().err
+
+
+# --- --out: new, empty, or an earlier process output re-made with --overwrite (issue #64) ---------------
+
+
+@pytest.fixture
+def fake_colmap(monkeypatch):
+    """Mapping that registers every photo and writes a one-file model, in no time."""
+    import warpnerf.data.process as proc
+
+    class Rec:
+        def __init__(self, n):
+            self.n = n
+
+        def num_reg_images(self):
+            return self.n
+
+        def num_points3D(self):
+            return 0
+
+        def write(self, folder):
+            open(os.path.join(folder, "images.bin"), "w").close()
+
+    monkeypatch.setattr(proc, "backend", lambda: "pycolmap")
+    monkeypatch.setattr(proc, "_run_pycolmap", lambda img_dir, db, models, names, *a: Rec(len(names)))
+
+
+def photos(folder, names=("a.png", "b.png", "c.png")):
+    os.makedirs(folder, exist_ok=True)
+    for n in names:
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(os.path.join(folder, n))
+    return str(folder)
+
+
+def process(tmp_path, out, *extra, images=None):
+    return main(["process", "--images", images or str(tmp_path / "photos"), "--out", str(out), "--quiet", *extra])
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_process_refuses_a_folder_it_did_not_write(tmp_path, capsys, fake_colmap, overwrite):
+    from door import one_line_error, tree
+
+    photos(tmp_path / "photos")
+    out = tmp_path / "mine"
+    (out / "notes").mkdir(parents=True)
+    (out / "notes.txt").write_text("keep me")
+    before = tree(tmp_path)
+    assert process(tmp_path, out, *(["--overwrite"] if overwrite else [])) == 2
+    one_line_error(capsys, str(out), "not empty", "notes.txt", "not written by warpnerf process")
+    assert tree(tmp_path) == before
+
+
+def test_process_refuses_a_file_as_out(tmp_path, capsys, fake_colmap):
+    from door import one_line_error, tree
+
+    photos(tmp_path / "photos")
+    (tmp_path / "f").write_text("x")
+    before = tree(tmp_path)
+    assert process(tmp_path, tmp_path / "f") == 2
+    one_line_error(capsys, "is not a folder")
+    assert tree(tmp_path) == before
+
+
+def test_process_remakes_its_own_output_only_with_overwrite(tmp_path, capsys, fake_colmap):
+    from door import one_line_error, tree
+    from warpnerf.data.process import MARKER
+
+    photos(tmp_path / "photos")
+    out = tmp_path / "data" / "scene"
+    assert process(tmp_path, out) == 0  # a new folder
+    assert sorted(os.listdir(out)) == sorted([MARKER, "colmap", "images", "sparse"])
+    capsys.readouterr()
+    before = tree(tmp_path)
+    assert process(tmp_path, out) == 2
+    one_line_error(capsys, "earlier warpnerf process output", "--overwrite")
+    assert tree(tmp_path) == before
+    photos(tmp_path / "other", names=("x.png", "y.png", "z.png"))
+    assert process(tmp_path, out, "--overwrite", images=str(tmp_path / "other")) == 0
+    assert sorted(os.listdir(out / "images")) == ["x.png", "y.png", "z.png"]  # the earlier photos went with their model
+    assert os.path.isfile(out / "sparse" / "0" / "images.bin")
+
+
+def test_process_in_place_and_into_an_empty_folder(tmp_path, fake_colmap):
+    out = tmp_path / "scene"
+    photos(out / "images")  # the photos already in DATASET/images
+    assert process(tmp_path, out, images=str(out / "images")) == 0
+    assert sorted(os.listdir(out / "images")) == ["a.png", "b.png", "c.png"]
+    photos(tmp_path / "photos")
+    (tmp_path / "empty").mkdir()
+    assert process(tmp_path, tmp_path / "empty") == 0

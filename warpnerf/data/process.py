@@ -8,6 +8,11 @@ reads::
     DATASET/images/...           # copies of the photos
     DATASET/sparse/0/*.bin       # the largest reconstruction
     DATASET/colmap/database.db   # features and matches (kept for re-runs / inspection)
+    DATASET/.warpnerf-process    # marker: made by warpnerf process (``--overwrite`` re-makes only such folders)
+
+``DATASET`` must be new or empty (the photos' own folder ``DATASET/images`` aside, when processed in
+place); a previous output of ``warpnerf process`` is re-made only with ``overwrite``, and anything else
+is refused before a file is written.
 
 Mapping that registers fewer than ``min_registered`` images is an error saying how many
 registered; a partial registration is reported on stderr and the dataset is still written
@@ -29,6 +34,8 @@ from warpnerf.data.errors import DatasetError
 from warpnerf.data.images import IMAGE_SUFFIXES
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MARKER = ".warpnerf-process"  # in DATASET: warpnerf process wrote this folder
+OUTPUTS = ("images", "sparse", "colmap")  # what process writes in DATASET (besides the marker)
 
 
 def list_images(folder: str) -> list[str]:
@@ -38,6 +45,27 @@ def list_images(folder: str) -> list[str]:
     if not names:
         raise DatasetError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
     return names
+
+
+def check_out(out: str, images: str, overwrite: bool = False) -> list[str]:
+    """Refuse (DatasetError, one line) an ``out`` that exists and is not a folder, or that holds anything
+    but the input photos themselves (``out/images`` processed in place), unless it is an earlier output
+    of ``warpnerf process`` (its marker) and ``overwrite`` is given. Returns the entries to remove first."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise DatasetError(f"--out {out} exists and is not a folder")
+    if not os.path.isdir(out):
+        return []
+    in_place = os.path.abspath(images) == os.path.abspath(os.path.join(out, "images"))
+    entries = sorted(n for n in os.listdir(out) if not (in_place and n == "images"))
+    if not entries:
+        return []
+    if not os.path.isfile(os.path.join(out, MARKER)):
+        raise DatasetError(f"--out {out} is not empty ({', '.join(entries[:3])}{', ...' if len(entries) > 3 else ''}) "
+                           f"and was not written by warpnerf process (no {MARKER}); choose a new or empty folder")
+    if not overwrite:
+        raise DatasetError(f"--out {out} holds an earlier warpnerf process output; pass --overwrite to re-make it "
+                           "or choose another folder")
+    return [n for n in entries if n in OUTPUTS]
 
 
 def backend() -> str:
@@ -66,6 +94,7 @@ def process_images(
     seed: int = 0,
     use: str | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict:
     """Run structure from motion on the photos in ``images`` and write the dataset ``out``.
 
@@ -77,6 +106,7 @@ def process_images(
         max_image_size: longest side SIFT sees, pixels.
         min_registered: fewer registered images is an error.
         use: force "pycolmap" or "colmap" (default: what is installed).
+        overwrite: re-make ``out`` when it is an earlier output of this command (see :func:`check_out`).
 
     Returns {"images": N, "registered": M, "points": P, "seconds": t, "backend": name}.
     """
@@ -85,8 +115,18 @@ def process_images(
     if matcher not in ("exhaustive", "sequential"):
         raise DatasetError(f"--matcher must be exhaustive or sequential, got {matcher}")
     names = list_images(images)
+    stale = check_out(out, images, overwrite)
     which = use or backend()
     t0 = time.time()
+    for name in stale:  # an earlier output being re-made: its images, model and database go
+        path = os.path.join(out, name)
+        if os.path.isdir(path):
+            shutil.rmtree(path)
+        else:
+            os.unlink(path)
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, MARKER), "w") as fh:
+        fh.write("written by warpnerf process; --overwrite may re-make this folder\n")
     work = os.path.join(out, "colmap")
     img_out = os.path.join(out, "images")
     if os.path.abspath(images) != os.path.abspath(img_out):
@@ -217,6 +257,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"))
     p.add_argument("--max-image-size", type=int, default=1600)
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--overwrite", action="store_true",
+                   help="re-make --out when it holds an earlier 'warpnerf process' output (other folders: never)")
     p.set_defaults(func=run)
     return p
 
@@ -224,7 +266,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args) -> int:
     res = process_images(args.images, args.out, camera_model=args.camera_model, camera_params=args.camera_params,
                          single_camera=not args.per_image_camera, matcher=args.matcher,
-                         max_image_size=args.max_image_size, progress=not args.quiet)
+                         max_image_size=args.max_image_size, progress=not args.quiet, overwrite=args.overwrite)
     print(f"registered {res['registered']} of {res['images']} images, {res['points']} points, "
           f"{res['seconds']} s ({res['backend']})")
     print(f"dataset: {os.path.abspath(args.out)}  (train with: warpnerf train --scene {os.path.basename(os.path.normpath(args.out))} "
