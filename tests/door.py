@@ -14,9 +14,19 @@ def tree(path) -> dict:
     return out
 
 
+# Warp's own notices on the first use of Warp in a process, not ours: no CUDA driver, and kernels of another
+# Warp version in the kernel cache
+_WARP_NOTICES = ("Warp CUDA", "Warp UserWarning: Kernel cache artifacts")
+
+
+def error_lines(stderr: str) -> list[str]:
+    """The non-empty lines of ``stderr``, Warp's own start-up notices left out."""
+    return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith(_WARP_NOTICES)]
+
+
 def one_line_error(capsys, *needles) -> str:
-    """The captured stderr is one 'warpnerf: error: ...' line (Warp's CUDA notice aside) holding every needle."""
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
+    """The captured stderr is one 'warpnerf: error: ...' line (Warp's notices aside) holding every needle."""
+    err = error_lines(capsys.readouterr().err)
     assert len(err) == 1, err
     assert err[0].startswith("warpnerf: error: ") and "Traceback" not in err[0]
     for n in needles:

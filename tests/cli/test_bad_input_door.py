@@ -13,7 +13,7 @@ from PIL import Image
 from fake_scenes import write_blender
 from warpnerf.cli import main
 from warpnerf.train.config import _FLOAT_FIELDS
-from door import tree
+from door import one_line_error, tree
 
 TRAIN = ["train", "--quiet", "--iters", "2", "--threads", "1", "--video-frames", "0"]
 
@@ -22,13 +22,9 @@ def refused(tmp_path, capsys, argv, *needles):
     """``main(argv)`` exits 2 with one stderr line holding ``needles``, and changes nothing under tmp_path."""
     before = tree(tmp_path)
     assert main(argv) == 2, argv
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
-    assert len(err) == 1, err
-    assert err[0].startswith("warpnerf: error: ") and "Traceback" not in err[0]
-    for n in needles:
-        assert n in err[0], (n, err[0])
+    line = one_line_error(capsys, *needles)
     assert tree(tmp_path) == before
-    return err[0]
+    return line
 
 
 @pytest.mark.parametrize("name", _FLOAT_FIELDS)
@@ -181,3 +177,33 @@ def test_sweep_spec_bad_retries_and_resources(tmp_path, capsys, line, needle):
     spec = tmp_path / "s.toml"
     spec.write_text(f'out = "{tmp_path / "out"}"\nscenes = ["chair"]\n{line}\n')
     refused(tmp_path, capsys, ["sweep", str(spec), "--quiet"], "s.toml", needle)
+
+
+# --- an output place that cannot be written: one line, even as root (os.access says yes to root) ----------
+
+needs_proc = pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+
+
+@needs_proc
+@pytest.mark.parametrize("out", ["/proc/x", "/proc/x/y", "/proc/self/x"])
+def test_train_into_an_unwritable_out(tmp_path, capsys, monkeypatch, out):
+    monkeypatch.setenv("WARPNERF_CACHE", str(tmp_path / "cache"))
+    refused(tmp_path, capsys, [*TRAIN, "--builtin-resolution", "16", "--out", out], f"run folder {out}")
+
+
+@needs_proc
+def test_sweep_into_an_unwritable_out(tmp_path, capsys):
+    spec = tmp_path / "s.toml"
+    spec.write_text('out = "/proc/x"\nscenes = ["chair"]\n')
+    refused(tmp_path, capsys, ["sweep", str(spec), "--quiet"], "/proc/x", "cannot be created")
+
+
+@needs_proc
+def test_process_into_an_unwritable_out(tmp_path, capsys, monkeypatch):
+    import warpnerf.data.process as proc
+
+    monkeypatch.setattr(proc, "backend", lambda: "pycolmap")  # the check comes before COLMAP runs
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "photos" / "a.png")
+    refused(tmp_path, capsys, ["process", "--images", str(tmp_path / "photos"), "--out", "/proc/x", "--quiet"],
+            "--out /proc/x", "cannot be written")

@@ -21,7 +21,7 @@ import time
 import pytest
 import torch
 
-from door import tree
+from door import error_lines, tree
 from warpnerf.cli import main
 
 SPEC = """out = "{out}"
@@ -62,7 +62,7 @@ def spec(tmp_path, monkeypatch):
 
 
 def stopped_line(capsys, *needles) -> str:
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
+    err = error_lines(capsys.readouterr().err)
     assert len(err) == 1, err
     assert err[0].startswith("warpnerf: sweep interrupted: ") and "Traceback" not in err[0]
     for n in needles:
@@ -144,7 +144,7 @@ def test_an_external_sigterm_stops_a_sweep_process(spec, tmp_path):
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=600)
-    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
+    lines = error_lines(err)
     assert proc.returncode == 130, err
     assert len(lines) == 1 and lines[0].startswith("warpnerf: sweep interrupted: ") and "continue with" in lines[0]
     assert 20 <= ckpt_step(out / FIRST) < 100000 and not (out / FIRST / "metrics.json").exists()
@@ -165,7 +165,7 @@ def test_sigterm_to_the_driver_stops_worker_processes(spec, tmp_path):
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)  # the driver only, as `kill` does
     _, err = proc.communicate(timeout=600)
-    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warp CUDA")]
+    lines = error_lines(err)
     assert proc.returncode == 130, err
     assert len(lines) == 1 and lines[0].startswith("warpnerf: sweep interrupted: "), lines
     assert "--workers 2" in lines[0]

@@ -371,3 +371,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("warpnerf: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # the file system refused (read-only, full, vanished folder): one line naming the file
+        if args.debug:
+            raise
+        where = f": {e.filename}" if e.filename else ""
+        print(f"warpnerf: error: {e.strerror or e}{where} (--debug shows where)", file=sys.stderr)
+        return 2

@@ -124,9 +124,12 @@ def process_images(
             shutil.rmtree(path)
         else:
             os.unlink(path)
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, MARKER), "w") as fh:
-        fh.write("written by warpnerf process; --overwrite may re-make this folder\n")
+    try:
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, MARKER), "w") as fh:
+            fh.write("written by warpnerf process; --overwrite may re-make this folder\n")
+    except OSError as e:
+        raise DatasetError(f"--out {out} cannot be written: {e.strerror or e}; choose another folder") from None
     work = os.path.join(out, "colmap")
     img_out = os.path.join(out, "images")
     if os.path.abspath(images) != os.path.abspath(img_out):

@@ -203,12 +203,18 @@ class RunLock:
                            "delete the lock if that process is gone")
 
     def acquire(self) -> "RunLock":
+        """Create the folder if needed and the lock file in it; ConfigError (one line) when another live
+        process holds it or the folder cannot be written (a read-only or virtual file system: os.access
+        says yes to root everywhere, so the first write is the test)."""
         if not os.path.isdir(self.out_dir):
             try:
                 os.makedirs(self.out_dir)
                 self.created_dir = True
             except FileExistsError:
                 pass
+            except OSError as e:
+                raise ConfigError(f"run folder {self.out_dir} cannot be created: {e.strerror or e}; "
+                                  "choose another --out") from None
         text = f"{os.getpid()} {socket.gethostname()}\n"
         for _ in range(3):
             try:
@@ -225,6 +231,10 @@ class RunLock:
                 except FileNotFoundError:
                     pass
                 continue
+            except OSError as e:
+                self.release()
+                raise ConfigError(f"run folder {self.out_dir} is not writable: {e.strerror or e}; "
+                                  "choose another --out") from None
             with os.fdopen(fd, "w") as fh:
                 fh.write(text)
             self.held = True

@@ -691,7 +691,10 @@ def run_sweep(spec: SweepSpec, backend: str = "local", workers: int = 1, ray_add
             more = f" (and {len(conflicts) - 1} more run folders)" if len(conflicts) > 1 else ""
             raise ConfigError(f"sweep: {conflicts[0]}{more}; pass --overwrite to replace finished runs, "
                               "or choose another out")
-    os.makedirs(spec.out, exist_ok=True)
+    try:
+        os.makedirs(spec.out, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"sweep out {spec.out} cannot be created: {e.strerror or e}; choose another out") from None
     bar = _Progress(len(results), len(results) - len(pending), progress)
     bar.write(f"sweep: {len(results)} runs, {len(results) - len(pending)} already finished (skipped), "
               f"{len(pending)} to run on the {backend} backend")
