@@ -207,3 +207,58 @@ def test_process_into_an_unwritable_out(tmp_path, capsys, monkeypatch):
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "photos" / "a.png")
     refused(tmp_path, capsys, ["process", "--images", str(tmp_path / "photos"), "--out", "/proc/x", "--quiet"],
             "--out /proc/x", "cannot be written")
+
+
+# --- identical camera centres: no parallax, no scale; refused by every layout, naming the file -----------
+
+
+def test_blender_identical_poses(tmp_path, capsys):
+    root = _blender(tmp_path)
+    path = os.path.join(root, "transforms_train.json")
+    meta = json.load(open(path))
+    for fr in meta["frames"]:
+        fr["transform_matrix"] = meta["frames"][0]["transform_matrix"]
+    json.dump(meta, open(path, "w"))
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "scene",
+                               "--out", str(tmp_path / "run")], "transforms_train.json", "2 camera centres coincide")
+
+
+@pytest.mark.parametrize("rotate", [False, True])  # copied matrices; a camera turning on the spot
+def test_transforms_json_identical_centres(tmp_path, capsys, rotate):
+    root = _transforms(tmp_path)
+    meta = json.loads((root / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        if rotate:
+            fr["transform_matrix"] = [row[:3] + [5.0 if i == 0 else 0.0] for i, row in
+                                      enumerate(fr["transform_matrix"][:3])] + [[0, 0, 0, 1]]
+        else:
+            fr["transform_matrix"] = meta["frames"][1]["transform_matrix"]
+    (root / "transforms.json").write_text(json.dumps(meta))
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "cap",
+                               "--out", str(tmp_path / "run")], "transforms.json", "4 camera centres coincide")
+
+
+def test_llff_identical_centres(tmp_path, capsys):
+    from fake_scenes import random_rotations, write_llff
+
+    n = 4
+    write_llff(str(tmp_path / "data" / "ff"), random_rotations(n), np.tile([[0.5, -1.0, 2.0]], (n, 1)),
+               np.tile([1.0, 10.0], (n, 1)), hwf=(64, 64, 50.0), factor=8)
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "ff",
+                               "--out", str(tmp_path / "run")], "poses_bounds.npy", "coincide", "0.5, -1, 2")
+
+
+def test_colmap_identical_centres(tmp_path):
+    """COLMAP models go through build_scene like transforms.json: the check names the images file."""
+    from warpnerf.data.capture import Frame, build_scene
+    from warpnerf.data.distortion import Intrinsics
+    from warpnerf.data.errors import DatasetError
+
+    frames = [Frame(f"{k}.png", str(tmp_path / f"{k}.png"), np.eye(4)[:3], Intrinsics(16, 16, 20.0, 20.0, 8.0, 8.0))
+              for k in range(3)]
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin: all 3 camera centres coincide"):
+        build_scene(frames, None, str(tmp_path), "colmap", "sparse/0/images.bin")
+    frames[1] = Frame("1.png", str(tmp_path / "1.png"), np.eye(4)[:3] + np.array([[0, 0, 0, 1e-3]] * 3),
+                      frames[1].camera)  # a millimetre apart at unit distance: parallax, accepted past this check
+    with pytest.raises(DatasetError, match="1.png|0.png"):  # now the missing images are the error
+        build_scene(frames, None, str(tmp_path), "colmap", "sparse/0/images.bin")

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_pinhole, shared_pinhole
-from warpnerf.data.errors import DatasetError, check_intrinsics
+from warpnerf.data.errors import DatasetError, check_camera_spread, check_intrinsics
 from warpnerf.data.images import area_downscale, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
 from warpnerf.data.scene import Scene, Views
@@ -112,6 +112,7 @@ def build_scene(
     for fr in frames:  # COLMAP and transforms.json alike: a zero or NaN focal length is no camera
         k = fr.camera
         check_intrinsics(f"{source} (image {fr.name})", k.width, k.height, k.fx, k.fy, k.cx, k.cy)
+    check_camera_spread(source, [fr.c2w[:3, 3] for fr in frames])  # before the normalisation divides by it
     if not isinstance(downscale, int) or downscale < 1:
         raise DatasetError(f"downscale must be a positive integer, got {downscale!r}")
     c2w = np.stack([fr.c2w for fr in frames])

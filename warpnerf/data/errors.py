@@ -34,6 +34,22 @@ def check_c2w(m, where: str, tol: float = 1e-3) -> None:
         raise DatasetError(f"{where}: rotation is a reflection (det = {det:.3f}, expected +1)")
 
 
+def check_camera_spread(where: str, centres, rel_tol: float = 1e-6) -> None:
+    """Raise DatasetError when two or more cameras all sit at one point (``centres``: (N, 3)).
+
+    Identical poses (a copied matrix) or a rotation-only capture give no parallax: nothing fixes the
+    depth of a point, the normalisation has no scale (every layout), and training fits a flat panorama.
+    The tolerance is relative to the distance of the cameras from the origin (at least 1 unit)."""
+    c = np.asarray(centres, np.float64).reshape(-1, 3)
+    if len(c) < 2:
+        return
+    spread = float(np.abs(c - c.mean(0)).max())
+    if spread <= rel_tol * max(1.0, float(np.abs(c).max())):
+        at = ", ".join(f"{v:.4g}" for v in c[0])
+        raise DatasetError(f"{where}: all {len(c)} camera centres coincide (at {at}): identical or rotation-only "
+                           "poses give no parallax; a scene needs views from different places")
+
+
 def read_json_object(path: str, missing: str = "") -> dict:
     """The JSON object in ``path``; DatasetError naming the file when it is missing, unreadable,
     malformed or not an object (``missing``: what to add to the missing-file message)."""
@@ -67,6 +83,7 @@ def check_frames(path: str, frames, empty: str = "") -> None:
         if m.shape not in ((4, 4), (3, 4)):
             raise DatasetError(f"{path}: frame {i} 'transform_matrix' must be 4x4, got shape {m.shape}")
         check_c2w(m, f"{path}: frame {i} 'transform_matrix'")
+    check_camera_spread(path, [np.asarray(fr["transform_matrix"], dtype=np.float64)[:3, 3] for fr in frames])
 
 
 def json_number(where: str, key: str, value, positive: bool = False, integer: bool = False) -> float:

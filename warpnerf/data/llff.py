@@ -28,7 +28,7 @@ import os
 import numpy as np
 import torch
 
-from warpnerf.data.errors import DatasetError, check_c2w
+from warpnerf.data.errors import DatasetError, check_c2w, check_camera_spread
 from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
 from warpnerf.data.scene import Scene, Views
 from warpnerf.geometry.rayspace import RaySpace, ndc_extent
@@ -84,6 +84,7 @@ def load_llff(
     # before recentring: one NaN would spread to every pose and the marcher would never stop
     for i in range(len(poses)):
         check_c2w(poses[i, :, :4], f"{pb_path}: pose {i}")
+    check_camera_spread(pb_path, poses[:, :, 3])
     if not np.all(np.isfinite(bounds)) or not np.all(bounds > 0):
         bad = int(np.nonzero(~(np.isfinite(bounds) & (bounds > 0)).all(1))[0][0])
         raise DatasetError(f"{pb_path}: bounds of pose {bad} must be finite and positive, got {bounds[bad].tolist()}")
