@@ -262,3 +262,79 @@ def test_colmap_identical_centres(tmp_path):
                       frames[1].camera)  # a millimetre apart at unit distance: parallax, accepted past this check
     with pytest.raises(DatasetError, match="1.png|0.png"):  # now the missing images are the error
         build_scene(frames, None, str(tmp_path), "colmap", "sparse/0/images.bin")
+
+
+# --- size flags whose tensors cannot fit memory_budget_mb: refused before anything loads --------------------
+
+
+@pytest.mark.parametrize("flag, value, key", [
+    ("--log2-table-size", "40", "log2_table_size"),
+    ("--log2-table-size", "28", "log2_table_size"),
+    ("--hidden", "1000000", "hidden"),
+    ("--occ-resolution", "5000", "occ_resolution"),
+    ("--batch-rays", "2000000000", "batch_rays"),
+    ("--sample-budget", "10000000000", "sample_budget"),
+])
+def test_size_flags_beyond_the_memory_budget(tmp_path, capsys, flag, value, key):
+    line = refused(tmp_path, capsys, [*TRAIN, flag, value, "--out", str(tmp_path / "run")],
+                   "memory_budget_mb = 4096", f"lower {key}")
+    assert "needs at least" in line
+
+
+def test_a_bigger_memory_budget_lets_a_size_through(tmp_path):
+    from warpnerf.train.config import build_config
+
+    with pytest.raises(Exception, match="batch_rays"):
+        build_config("full", None, {"batch_rays": 100_000_000})  # 6.1 GB of rays
+    assert build_config("full", None, {"batch_rays": 100_000_000, "memory_budget_mb": 8192}).batch_rays == 100_000_000
+
+
+# --- render, export and view of a run whose checkpoint is truncated or not ours: one line, nothing written ----
+
+
+def _finished_run_with_checkpoint(folder, data: bytes):
+    from warpnerf.runs.folder import MARKER, config_hash, write_config
+    from warpnerf.train.config import build_config
+
+    cfg = build_config("full", overrides={"out": str(folder), "builtin_resolution": 16, "video_frames": 0})
+    os.makedirs(folder)
+    write_config(os.path.join(folder, "config.toml"), cfg)
+    with open(os.path.join(folder, "metrics.json"), "w") as f:
+        json.dump({"psnr": 1.0, "config_hash": config_hash(cfg), "scene_source": "builtin"}, f)
+    open(os.path.join(folder, MARKER), "w").close()
+    with open(os.path.join(folder, "checkpoint.pt"), "wb") as f:
+        f.write(data)
+
+
+def _checkpoint_bytes(kind: str) -> bytes:
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    if kind == "truncated":
+        torch.save({"format": "warpnerf-checkpoint-1", "x": torch.zeros(1000)}, buf)
+        return buf.getvalue()[:700]
+    if kind == "foreign":  # another program's state dict: loads, but is not ours
+        torch.save({"model": torch.zeros(3)}, buf)
+        return buf.getvalue()
+    if kind == "empty":
+        return b""
+    import datetime  # an arbitrary pickled object: weights_only refuses it instead of running it
+
+    torch.save({"format": "warpnerf-checkpoint-1", "obj": datetime.date(2020, 1, 1)}, buf)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("kind", ["truncated", "foreign", "empty", "pickle"])
+@pytest.mark.parametrize("command", [["render", "--frames", "2"], ["export"], ["export", "--what", "points"],
+                                     ["view"]])
+def test_outputs_of_a_run_with_a_bad_checkpoint(tmp_path, capsys, monkeypatch, kind, command):
+    if command[0] == "view":
+        pytest.importorskip("viser")
+        import warpnerf.outputs.viewer as viewer_mod
+
+        monkeypatch.setattr(viewer_mod, "serve", lambda *a, **k: pytest.fail("served a bad checkpoint"))
+    monkeypatch.setenv("WARPNERF_CACHE", str(tmp_path / "cache"))
+    _finished_run_with_checkpoint(tmp_path / "run", _checkpoint_bytes(kind))
+    refused(tmp_path, capsys, [command[0], "--run", str(tmp_path / "run"), *command[1:], "--quiet"], "checkpoint.pt")

@@ -34,7 +34,8 @@ def test_sphere_mesh_from_an_analytic_density():
     from warpnerf.model.occupancy import OccupancyGrid
 
     tr = SimpleNamespace(field=Ball(), occupancy=OccupancyGrid((-1, -1, -1, 1, 1, 1), 8), device=torch.device("cpu"),
-                         cfg=SimpleNamespace(iters=1), level_weights=lambda s: None, scene=SimpleNamespace(ray_space=RaySpace()))
+                         cfg=SimpleNamespace(iters=1, memory_budget_mb=4096), level_weights=lambda s: None,
+                         scene=SimpleNamespace(ray_space=RaySpace()))
     verts, faces, colors = E.extract_mesh(tr, resolution=65, threshold=50.0)
     r = np.linalg.norm(verts, axis=-1)
     assert abs(r.mean() - 0.5) < 0.02 and r.std() < 0.02  # grid spacing 1/32
@@ -93,3 +94,16 @@ def test_chair_point_cloud(chair_run, tmp_path):
 def test_export_errors_are_one_line(chair_run, tmp_path, capsys):
     assert main(["export", "--run", str(chair_run), "--threshold", "1e9", "--resolution", "16", "--quiet"]) == 2
     assert "never crosses the iso-level" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--resolution", "2000"], "lower --resolution"),  # a 2000^3 density grid: 64 GB
+    (["--what", "points", "--scale", "1000"], "lower --scale"),  # 32000 x 32000 renders
+])
+def test_export_sizes_beyond_the_memory_budget_are_one_line(chair_run, capsys, argv, needle):
+    from door import one_line_error, tree
+
+    before = tree(chair_run)
+    assert main(["export", "--run", str(chair_run), *argv, "--quiet"]) == 2
+    one_line_error(capsys, "needs at least", "memory_budget_mb = 4096", needle)
+    assert tree(chair_run) == before

@@ -108,3 +108,13 @@ def test_spiral_path_of_a_run(chair_run):
     cams = make_path(trainer, "spiral", 8, scale=0.5)
     assert len(cams) == 8 and (cams.height, cams.width) == (RESOLUTION // 2, RESOLUTION // 2)
     assert cams.focal == pytest.approx(trainer.views.focal * 0.5)
+
+
+def test_render_scale_beyond_the_memory_budget_is_one_line(chair_run, capsys):
+    """--scale 1000: 32000 x 32000 frames would need ~65 GB each; refused before a frame is rendered."""
+    from door import one_line_error, tree
+
+    before = tree(chair_run)
+    assert main(["render", "--run", str(chair_run), "--scale", "1000", "--frames", "2", "--quiet"]) == 2
+    one_line_error(capsys, "rendering 2 frames of 32000x32000", "memory_budget_mb = 4096", "lower --scale")
+    assert tree(chair_run) == before

@@ -63,8 +63,8 @@ def add_output_commands(sub) -> None:
 
 def cmd_render(args) -> int:
     from warpnerf.runs.folder import load_run  # lazy: keeps --help fast (torch)
-    from warpnerf.runs.video import (PathError, make_path, render_frames,  # lazy: keeps --help fast (torch)
-                                     write_camera_path_json, write_video)
+    from warpnerf.runs.video import (PathError, check_render_memory, make_path,  # lazy: keeps --help fast (torch)
+                                     render_frames, write_camera_path_json, write_video)
 
     if args.fps <= 0 or args.scale <= 0:
         raise UserError("--fps and --scale must be > 0")
@@ -75,6 +75,7 @@ def cmd_render(args) -> int:
     out = args.out or os.path.join(args.run, f"render_{name}.mp4")
     try:
         cams = make_path(trainer, args.path, args.frames, args.scale)
+        check_render_memory(trainer, cams, args.depth)  # before a frame is rendered
     except PathError as e:
         raise UserError(str(e)) from e
     if args.save_path:

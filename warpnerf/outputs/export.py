@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from warpnerf.model.renderer import pixel_rays
+from warpnerf.train.memory import mesh_bytes, over_budget, render_bytes
 from warpnerf.train.views import training_cameras
 
 # Iso-level of the exported surface, density per scene unit (1 - exp(-10 * 0.01) = 10 % of the light
@@ -88,6 +89,10 @@ def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRE
         from skimage import measure  # optional extra: warpnerf[export]
     except ImportError:
         raise ExportError("mesh export needs scikit-image: pip install 'warpnerf[export]'") from None
+    problem = over_budget(mesh_bytes(resolution), trainer.cfg.memory_budget_mb,
+                          f"a {resolution}^3 density grid for marching cubes", "--resolution")
+    if problem:
+        raise ExportError(problem)
     sigma, lo, spacing = density_grid(trainer, resolution)
     if not (sigma.max() > threshold > sigma.min()):
         raise ExportError(f"the density never crosses the iso-level {threshold} (range {sigma.min():.3g}.."
@@ -112,6 +117,10 @@ def extract_points(trainer, scale: float = 0.5, min_opacity: float = 0.95, max_p
     ``max_points`` (a seeded random subset)."""
     views = trainer.views
     h, w = max(int(round(views.height * scale)), 1), max(int(round(views.width * scale)), 1)
+    problem = over_budget(render_bytes(h, w, frames=0), trainer.cfg.memory_budget_mb,
+                          f"rendering {w}x{h} views for points", "--scale")
+    if problem:
+        raise ExportError(problem)
     sx, sy = w / views.width, h / views.height
     focal, cx, cy = views.focal * sx, views.cx * sx, views.cy * sy
     c2ws = training_cameras(trainer)

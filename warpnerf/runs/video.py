@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from warpnerf.geometry.cameras import look_at
 from warpnerf.train.evaluate import depth_to_rgb
+from warpnerf.train.memory import over_budget, render_bytes
 from warpnerf.train.views import test_cameras, training_cameras
 
 PATHS = ("orbit", "spiral", "test")
@@ -237,9 +238,20 @@ def make_path(trainer, kind: str, frames: int, scale: float = 1.0) -> CameraPath
 # ---- rendering and writing -------------------------------------------------------------------
 
 
+def check_render_memory(trainer, cams: CameraPath, depth: bool = False) -> None:
+    """PathError (one line) when rendering ``cams`` (one image's working memory, every frame kept for the
+    video) cannot fit the run's ``memory_budget_mb`` (:func:`warpnerf.train.memory.render_bytes`)."""
+    problem = over_budget(render_bytes(cams.height, cams.width, len(cams.c2w), depth), trainer.cfg.memory_budget_mb,
+                          f"rendering {len(cams.c2w)} frames of {cams.width}x{cams.height}", "--scale or --frames")
+    if problem:
+        raise PathError(problem)
+
+
 def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool = True) -> list[np.ndarray]:
     """Render every camera of ``cams``: a list of (H, W, 3) uint8 frames, or (H, 2W, 3) with the
-    depth map (near = bright, background white) beside the RGB when ``depth``."""
+    depth map (near = bright, background white) beside the RGB when ``depth``. PathError first when
+    they cannot fit the run's memory budget (:func:`check_render_memory`)."""
+    check_render_memory(trainer, cams, depth)
     weights = trainer.level_weights(trainer.cfg.iters)
     out = []
     for c2w in tqdm(cams.c2w, desc="render", disable=not progress, dynamic_ncols=True):

@@ -30,6 +30,7 @@ from importlib import resources
 from typing import Any, Optional, Union
 
 from warpnerf.model.g2fr import G2FR_BETA, MASK_MODES, SCHEDULES
+from warpnerf.train.memory import training_memory_problem
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -428,3 +429,9 @@ def validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, name)
         if isinstance(value, float) and not math.isfinite(value):
             raise ConfigError(f"{name} must be a finite number, got {value}")
+    # size settings whose tensors cannot fit memory_budget_mb: refused before anything is allocated or written
+    if cfg.memory_budget_mb < 1:
+        raise ConfigError(f"memory_budget_mb must be >= 1, got {cfg.memory_budget_mb}")
+    problem = training_memory_problem(cfg)
+    if problem:
+        raise ConfigError(problem)
