@@ -113,16 +113,20 @@ def headline_table(records: list[dict], link_prefix: str) -> str:
     return "\n".join(lines) + f"\n\n{note} Commands and configs are in each record."
 
 
+G2FR_CELLS = {"fixed": "w/", "adaptive": "w/ (adaptive)", "none": "w/o"}
+
+
 def runs_table(rows: list[dict], link_prefix: str) -> str:
-    lines = ["| record | scene | task | model | G2fR | iters | seed | PSNR | SSIM | LPIPS | rot. (deg) | trans. (x100) "
-             "| training (s) | render (s/view) | peak RSS (MB) | threads | alone (other cores) | commit, date |",
-             "|" + "---|" * 18]
+    lines = ["| record | scene | task | model | G2fR | iters | seed | split | PSNR | SSIM | LPIPS | rot. (deg) "
+             "| trans. (x100) | training (s) | render (s/view) | peak RSS (MB) | threads | alone (other cores) "
+             "| commit, date |",
+             "|" + "---|" * 19]
     for r in rows:
         m, c = r["metrics"], r["config"]
         lines.append(" | ".join([
             f"| {_link(r['record'], link_prefix)}", str(m.get("scene", c.get("scene"))), str(m.get("task", c.get("task"))),
-            str(m.get("model", c.get("model"))), "w/" if m.get("g2fr", c.get("g2fr")) else "w/o",
-            str(m.get("iters", c.get("iters"))), str(m.get("seed", c.get("seed"))),
+            str(m.get("model", c.get("model"))), G2FR_CELLS[arm_of({"g2fr": c.get("g2fr"), **m})],
+            str(m.get("iters", c.get("iters"))), str(m.get("seed", c.get("seed"))), m.get("eval_split", "test"),
             _fmt(m.get("psnr"), 2), _fmt(m.get("ssim"), 3), _fmt(m.get("lpips"), 3),
             _fmt(m.get("rot_err_deg"), 3), _fmt(m.get("trans_err_x100"), 3),
             _fmt(m.get("train_seconds"), 0), _fmt(m.get("render_seconds_per_view"), 2), _fmt(m.get("peak_rss_mb"), 0),
@@ -193,14 +197,16 @@ def regime_of(row: dict) -> str:
     return f"{m.get('iters')} it, images{size or ' full size'}, 2^{table} table, {bg}, lr x{c.get('lr_final_ratio')}"
 
 
-def fewshot_groups(rows: list[dict]) -> dict:
-    """(record, scene, view set, regime) -> {arm: {seed: row}} for the few-shot runs measured on test."""
+def fewshot_groups(rows: list[dict], split: Optional[str] = "test") -> dict:
+    """(record, scene, view set, regime, scene source, split) -> {arm: {seed: row}} for the few-shot runs whose
+    final metrics were measured on ``split`` (None: any split)."""
     groups: dict = {}
     for r in rows:
         m = r["metrics"]
-        if m.get("task") != "fewshot" or m.get("eval_split", "test") != "test":
+        if m.get("task") != "fewshot" or (split is not None and m.get("eval_split", "test") != split):
             continue
-        key = (r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"))
+        key = (r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"),
+               m.get("eval_split", "test"))
         groups.setdefault(key, {}).setdefault(arm_of(m), {})[m.get("seed")] = r
     return groups
 
@@ -226,7 +232,7 @@ def fewshot_table(rows: list[dict]) -> str:
     head += [f"PSNR {ARM_LABELS[a]}" for a in arms] + [f"SSIM {ARM_LABELS[a]}" for a in arms]
     head += [f"PSNR gap {ARM_LABELS[a].split(' ', 1)[1]} − w/o" for a in arms if a != "none"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for (record, scene, view_set, regime, source), by_arm in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
+    for (record, scene, view_set, regime, source, _), by_arm in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
         builtin = source == "builtin"
         paper = {} if builtin else paper_numbers(scene or "", "fewshot", "ngp")
         seeds = sorted({s for arm in by_arm.values() for s in arm}, key=str)
@@ -252,9 +258,10 @@ def fewshot_table(rows: list[dict]) -> str:
 
 def fewshot_curves(rows: list[dict]) -> dict:
     """{panel: {arm label: (epochs, mean PSNR, std PSNR)}} of the recorded held-out curves, averaged over
-    seeds at each measured step, one panel per (record, scene, view set): what :func:`write_figures` plots."""
+    seeds at each measured step, one panel per (record, scene, view set): what :func:`write_figures` plots.
+    Runs measured on val (settings being chosen) are drawn too; each label names its curve's split."""
     panels: dict = {}
-    for (record, scene, view_set, _, _), by_arm in fewshot_groups(rows).items():
+    for (record, scene, view_set, _, _, split), by_arm in fewshot_groups(rows, split=None).items():
         curves = {}
         for a, runs in by_arm.items():
             hists = [(r["metrics"].get("heldout_history") or [], r["metrics"].get("heldout_epochs") or [])
@@ -265,11 +272,11 @@ def fewshot_curves(rows: list[dict]) -> dict:
             ep = [statistics.fmean(e[i] for _, e in hists) for i in range(n)]
             vals = [[h[i][1] for h, _ in hists] for i in range(n)]
             std = [statistics.stdev(v) if len(v) > 1 else 0.0 for v in vals]
-            split = next(iter(runs.values()))["metrics"].get("heldout_split", "test")
-            curves[f"{ARM_LABELS[a]} ({split}, {len(hists)} seed{'s' if len(hists) > 1 else ''})"] = (
+            curve_split = next(iter(runs.values()))["metrics"].get("heldout_split", "test")
+            curves[f"{ARM_LABELS[a]} ({curve_split}, {len(hists)} seed{'s' if len(hists) > 1 else ''})"] = (
                 ep, [statistics.fmean(v) for v in vals], std)
         if curves:
-            panels[f"{record}: {scene}, {view_set}"] = curves
+            panels[f"{record}: {scene}, {view_set}" + ("" if split == "test" else f" (final metrics on {split})")] = curves
     return panels
 
 
