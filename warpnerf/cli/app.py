@@ -349,10 +349,10 @@ def main(argv: list[str] | None = None) -> int:
         from warpnerf.data.errors import DatasetError  # lazy: see above
         from warpnerf.runs.run import TrainingInterrupted  # lazy: see above
         from warpnerf.studies.sweep import SweepInterrupted  # lazy: see above
-        from warpnerf.train.checkpoint import CheckpointError  # lazy: see above
+        from warpnerf.train.checkpoint import CheckpointError, WriteError  # lazy: see above
         from warpnerf.train.trainer import TrainingError  # lazy: see above
 
-        user_errors += (DatasetError, TrainingError, CheckpointError)
+        user_errors += (DatasetError, TrainingError, CheckpointError, WriteError)
         interrupted = (TrainingInterrupted, SweepInterrupted)
     except ImportError:  # pragma: no cover - partial installs
         pass

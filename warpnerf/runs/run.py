@@ -30,7 +30,7 @@ from warpnerf.runs.folder import (CHECKPOINT, MARKER, RESULT_NEUTRAL_KEYS, RunLo
                                   read_checkpoint, read_metrics, read_run_config, resolve_data_root, write_config,
                                   write_marker)
 from warpnerf.train import plots
-from warpnerf.train.checkpoint import _fault, save_checkpoint
+from warpnerf.train.checkpoint import WriteError, _fault, save_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
 from warpnerf.train.evaluate import evaluate, write_json
 from warpnerf.train.metrics import configure_lpips
@@ -133,7 +133,9 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
     Everything the user can get wrong (config values, device, run folder, data) is checked before
     the first file is written. With ``cfg.checkpoint_every`` a checkpoint is
     saved atomically every that many steps; SIGINT/SIGTERM save one at the next step boundary and
-    raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint."""
+    raise TrainingInterrupted. ``resume`` continues an unfinished run folder bit-identically from its last checkpoint.
+    A file that cannot be written (a full disk) is a one-line TrainingError naming it; the last checkpoint
+    is kept, and the message says how to continue from it."""
     try:
         if cfg.threads is not None:
             devmod.limit_cpu_threads(cfg.threads)
@@ -159,6 +161,12 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
             print(f"note: {lock.note}")
         mode = prepare_run(cfg, overwrite, resume, force)  # again, now that no other run can change the folder
         return _run_locked(cfg, mode, device, progress, overwrite)
+    except WriteError as e:  # a full disk: the last checkpoint is intact, the run continues from it
+        ckpt = os.path.join(cfg.run_dir(), CHECKPOINT)
+        how = (f"free space, then continue from the last checkpoint with: warpnerf train --resume {cfg.run_dir()}"
+               if os.path.exists(ckpt) and os.path.exists(os.path.join(cfg.run_dir(), "config.toml"))
+               else "free space and run again")
+        raise TrainingError(f"{e}; {how}") from e
     finally:
         if installed:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

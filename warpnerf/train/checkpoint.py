@@ -22,6 +22,15 @@ class CheckpointError(ValueError):
     """A checkpoint file is missing, truncated or not ours (one line, names the file)."""
 
 
+class WriteError(OSError):
+    """A file could not be written (disk full, read-only file system, quota): one line naming it. The
+    atomic writer leaves the file it would have replaced as it was."""
+
+    def __str__(self) -> str:
+        name = os.path.basename(self.filename or "")
+        return f"cannot write {self.filename}: {self.strerror}; the previous {name} (if any) is unchanged"
+
+
 def _fault(point: str) -> None:
     # fault injection for the crash tests: WARPNERF_FAULT=<point> sends this process
     # $WARPNERF_FAULT_SIGNAL (default KILL) there, so a test can crash it at an exact place
@@ -30,9 +39,15 @@ def _fault(point: str) -> None:
 
 
 def atomic_write_bytes(path: str, write) -> None:
-    """Call ``write(fh)`` on a temp file next to ``path``, fsync it, then rename it over ``path``."""
+    """Call ``write(fh)`` on a temp file next to ``path``, fsync it, then rename it over ``path``.
+
+    An OSError on the way (a full disk: ENOSPC) removes the temp file, leaves ``path`` as it was and is
+    raised as :class:`WriteError`."""
     folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-" + os.path.basename(path) + "-", dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-" + os.path.basename(path) + "-", dir=folder)
+    except OSError as e:
+        raise WriteError(e.errno, e.strerror or str(e), path) from e
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
@@ -40,9 +55,11 @@ def atomic_write_bytes(path: str, write) -> None:
             os.fsync(fh.fileno())
         _fault("before_replace:" + os.path.basename(path))
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, WriteError):
+            raise WriteError(e.errno, e.strerror or str(e), path) from e
         raise
     try:  # make the rename itself durable
         dfd = os.open(folder, os.O_RDONLY)
