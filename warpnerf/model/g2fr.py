@@ -174,7 +174,7 @@ class AdaptiveG2fRSchedule(G2fRSchedule):
         ([4, 6, 8], 3)
     """
 
-    def __init__(self, n_levels: int, window: int = 50, tol: float = 0.25, mode: str = "cosine", enabled: bool = True):
+    def __init__(self, n_levels: int, window: int = 10, tol: float = 0.5, mode: str = "cosine", enabled: bool = True):
         if window < 2:
             raise ValueError(f"adaptive g2fr window must be >= 2 steps, got {window}")
         if not 0.0 <= tol <= 1.0:
@@ -227,7 +227,7 @@ class AdaptiveG2fRSchedule(G2fRSchedule):
 
 
 def make_schedule(kind: str, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine",
-                  enabled: bool = True, window: int = 50, tol: float = 0.25) -> G2fRSchedule:
+                  enabled: bool = True, window: int = 10, tol: float = 0.5) -> G2fRSchedule:
     """The schedule named ``kind`` (one of :data:`SCHEDULES`)."""
     if kind == "fixed":
         return G2fRSchedule(n_levels, total_steps, beta, mode, enabled)

@@ -403,7 +403,7 @@ class FitConfig:
     mask_mode: str = "cosine"  # "cosine" (BARF ramp) or "binary"
     schedule: str = "fixed"  # "fixed" (eq. 15 over beta of the steps) or "adaptive" (a level opens on a loss plateau)
     plateau_window: int = 10  # adaptive: steps per loss window (model.g2fr.AdaptiveG2fRSchedule)
-    plateau_tol: float = 0.25  # adaptive: the next level opens when a window's gain falls to this share of the largest since the last opened
+    plateau_tol: float = 0.5  # adaptive: the next level opens when a window's gain falls to this share of the largest since the last opened
     # positional encoding baseline
     pe_n_freqs: int = 7  # frequencies 2^k·π rad, k < n: 0.5 … 32 cycles per unit length
 

@@ -112,8 +112,8 @@ class TrainConfig:
     g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     g2fr_mask: str = "cosine"  # level ramp: cosine (BARF) | binary (on at the end of its ramp)
     g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss stops improving; no budget needed)
-    g2fr_plateau_window: int = 50  # adaptive: steps per loss window; a new level ramps in over one window
-    g2fr_plateau_tol: float = 0.25  # adaptive: the next level opens when a window's relative loss improvement falls to this fraction of the largest since the last level opened
+    g2fr_plateau_window: int = 10  # adaptive: steps per loss window; a new level ramps in over one window (10 and g2fr_plateau_tol 0.5: the best of 7 pairs on lego's val split, docs/studies/2026-12-07-fewshot-paper-regime.md)
+    g2fr_plateau_tol: float = 0.5  # adaptive: the next level opens when a window's relative loss improvement falls to this fraction of the largest since the last level opened
     # --- hash grid and MLPs ---
     levels: int = 16  # grid levels L
     features: int = 2  # features F per grid level
