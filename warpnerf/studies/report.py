@@ -54,7 +54,10 @@ def recorded_runs(records: list[dict]) -> list[dict]:
         for run in rec["runs"]:
             # a run that measured its own code and CPU share (metrics.json "code", "cpu") speaks for itself;
             # older runs inherit the record's
-            code = run["metrics"].get("code") or {"commit": rec.get("commit"), "dirty": rec.get("dirty")}
+            # (a run recorded after it trained, by 'warpnerf record', has only its own word: none if it predates it)
+            inherited = {"commit": None, "dirty": None} if rec["kind"] == "runs" else \
+                {"commit": rec.get("commit"), "dirty": rec.get("dirty")}
+            code = run["metrics"].get("code") or inherited
             rows.append({"record": rec["name"], "kind": rec["kind"], "command": rec["command"],
                          "commit": code.get("commit"), "dirty": code.get("dirty"), "date": rec["date"],
                          "machine": rec["machine"], "cpu": run["metrics"].get("cpu") or rec["cpu"],
@@ -76,7 +79,8 @@ def _mean_std(values: list, digits: int) -> str:
 
 
 def _provenance(row: dict) -> str:
-    commit = (row["commit"] or "no git")[:7] + ("+dirty" if row["dirty"] else "")
+    unknown = "commit not measured" if row["kind"] == "runs" else "no git"
+    commit = (row["commit"] or unknown)[:7 if row["commit"] else None] + ("+dirty" if row["dirty"] else "")
     return f"{commit}, {row['date'][:10]}"
 
 
@@ -113,7 +117,8 @@ def headline_table(records: list[dict], link_prefix: str) -> str:
     return "\n".join(lines) + f"\n\n{note} Commands and configs are in each record."
 
 
-G2FR_CELLS = {"fixed": "w/", "adaptive": "w/ (adaptive)", "none": "w/o"}
+def g2fr_cell(arm: str) -> str:
+    return {"fixed": "w/", "none": "w/o"}.get(arm) or f"w/ ({arm})"
 
 
 def runs_table(rows: list[dict], link_prefix: str) -> str:
@@ -125,7 +130,7 @@ def runs_table(rows: list[dict], link_prefix: str) -> str:
         m, c = r["metrics"], r["config"]
         lines.append(" | ".join([
             f"| {_link(r['record'], link_prefix)}", str(m.get("scene", c.get("scene"))), str(m.get("task", c.get("task"))),
-            str(m.get("model", c.get("model"))), G2FR_CELLS[arm_of({"g2fr": c.get("g2fr"), **m})],
+            str(m.get("model", c.get("model"))), g2fr_cell(arm_of({"g2fr": c.get("g2fr"), **m}, c)),
             str(m.get("iters", c.get("iters"))), str(m.get("seed", c.get("seed"))), m.get("eval_split", "test"),
             _fmt(m.get("psnr"), 2), _fmt(m.get("ssim"), 3), _fmt(m.get("lpips"), 3),
             _fmt(m.get("rot_err_deg"), 3), _fmt(m.get("trans_err_x100"), 3),
@@ -178,14 +183,29 @@ def paper_table(task: str, rows: list[dict]) -> str:
                                f"were recorded. Regimes differ: {PAPER_REGIME[task]}.")
 
 
-ARM_LABELS = {"fixed": "w/ G2fR (fixed β)", "adaptive": "w/ G2fR (adaptive)", "none": "w/o"}
+ARM_LABELS = {"fixed": "w/ G2fR (fixed β)", "none": "w/o"}
 
 
-def arm_of(metrics: dict) -> str:
-    """fixed | adaptive | none: the G²fR arm a run belongs to."""
+def arm_of(metrics: dict, config: Optional[dict] = None) -> str:
+    """The G²fR arm a run belongs to: fixed | none | "adaptive W/T" (its plateau window and tol)."""
     if not metrics.get("g2fr"):
         return "none"
-    return metrics.get("g2fr_schedule") or "fixed"
+    if (metrics.get("g2fr_schedule") or "fixed") == "fixed":
+        return "fixed"
+    c = config or {}
+    return f"adaptive {c.get('g2fr_plateau_window', '?')}/{c.get('g2fr_plateau_tol', '?')}"
+
+
+def arm_label(arm: str) -> str:
+    if arm in ARM_LABELS:
+        return ARM_LABELS[arm]
+    window, tol = arm.split(" ", 1)[1].split("/")
+    return f"w/ G2fR (adaptive, window {window}, tol {tol})"
+
+
+def arm_order(arms) -> list[str]:
+    """fixed, the adaptive variants, then the baseline."""
+    return sorted(set(arms), key=lambda a: (a == "none", a != "fixed", a))
 
 
 def regime_of(row: dict) -> str:
@@ -207,7 +227,7 @@ def fewshot_groups(rows: list[dict], split: Optional[str] = "test") -> dict:
             continue
         key = (r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"),
                m.get("eval_split", "test"))
-        groups.setdefault(key, {}).setdefault(arm_of(m), {})[m.get("seed")] = r
+        groups.setdefault(key, {}).setdefault(arm_of(m, r["config"]), {})[m.get("seed")] = r
     return groups
 
 
@@ -227,10 +247,10 @@ def fewshot_table(rows: list[dict]) -> str:
     groups = fewshot_groups(rows)
     if not groups:
         return "No record yet."
-    arms = [a for a in ARM_LABELS if any(a in g for g in groups.values())]
+    arms = arm_order(a for g in groups.values() for a in g)
     head = ["record", "scene", "views", "regime (ours)", "seeds", "epochs (w/o)"]
-    head += [f"PSNR {ARM_LABELS[a]}" for a in arms] + [f"SSIM {ARM_LABELS[a]}" for a in arms]
-    head += [f"PSNR gap {ARM_LABELS[a].split(' ', 1)[1]} − w/o" for a in arms if a != "none"]
+    head += [f"PSNR {arm_label(a)}" for a in arms] + [f"SSIM {arm_label(a)}" for a in arms]
+    head += [f"PSNR gap {arm_label(a).split(' ', 1)[1]} − w/o" for a in arms if a != "none"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for (record, scene, view_set, regime, source, _), by_arm in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
         builtin = source == "builtin"
@@ -263,7 +283,8 @@ def fewshot_curves(rows: list[dict]) -> dict:
     panels: dict = {}
     for (record, scene, view_set, _, _, split), by_arm in fewshot_groups(rows, split=None).items():
         curves = {}
-        for a, runs in by_arm.items():
+        for a in arm_order(by_arm):
+            runs = by_arm[a]
             hists = [(r["metrics"].get("heldout_history") or [], r["metrics"].get("heldout_epochs") or [])
                      for r in runs.values()]
             n = min(min(len(h), len(e)) for h, e in hists) if hists else 0
@@ -273,7 +294,7 @@ def fewshot_curves(rows: list[dict]) -> dict:
             vals = [[h[i][1] for h, _ in hists] for i in range(n)]
             std = [statistics.stdev(v) if len(v) > 1 else 0.0 for v in vals]
             curve_split = next(iter(runs.values()))["metrics"].get("heldout_split", "test")
-            curves[f"{ARM_LABELS[a]} ({curve_split}, {len(hists)} seed{'s' if len(hists) > 1 else ''})"] = (
+            curves[f"{arm_label(a)} ({curve_split}, {len(hists)} seed{'s' if len(hists) > 1 else ''})"] = (
                 ep, [statistics.fmean(v) for v in vals], std)
         if curves:
             panels[f"{record}: {scene}, {view_set}" + ("" if split == "test" else f" (final metrics on {split})")] = curves

@@ -178,19 +178,19 @@ def plot_band_curves(path: str, panels: Mapping[str, Mapping[str, tuple]], xlabe
     """One panel per entry of ``panels`` (panel title -> {label: (x, mean, std)}): each label's mean
     curve with a band of +-1 std (e.g. PSNR against epochs over seeds). Returns the path."""
     n = max(len(panels), 1)
-    fig = _figure((4.2 * n, 3.6))
+    fig = _figure((5.0 * n, 4.0))
     axes = fig.subplots(1, n, squeeze=False)[0]
     for ax, (panel, curves) in zip(axes, panels.items()):
         for i, (label, (x, mean, std)) in enumerate(curves.items()):
-            colour = _RUN_COLOURS[i % len(_RUN_COLOURS)]
+            colour, style = _RUN_COLOURS[i % len(_RUN_COLOURS)], ("-", "--", ":")[i // len(_RUN_COLOURS) % 3]
             x, mean, std = _np(x), _np(mean), _np(std)
-            ax.plot(x, mean, marker="o", markersize=2.5, color=colour, label=label)
+            ax.plot(x, mean, style, marker="o", markersize=2.5, color=colour, label=label)
             ax.fill_between(x, mean - std, mean + std, color=colour, alpha=0.2, linewidth=0)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(True, alpha=0.3)
-        ax.set_title(panel)
-        ax.legend(fontsize=8)
+        ax.set_title(panel, fontsize=9)
+        ax.legend(fontsize=7)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
