@@ -32,7 +32,7 @@ from warpnerf.runs.folder import (CHECKPOINT, MARKER, RESULT_NEUTRAL_KEYS, RunLo
 from warpnerf.train import plots
 from warpnerf.train.checkpoint import WriteError, _fault, save_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_preset
-from warpnerf.train.evaluate import evaluate, write_json
+from warpnerf.train.evaluate import eval_view_count, evaluate, write_json
 from warpnerf.train.metrics import configure_lpips
 from warpnerf.train.monitor import Monitor, heldout_split
 from warpnerf.train.tasks import make_task
@@ -173,6 +173,25 @@ def run_training(cfg: TrainConfig, progress: bool = True, overwrite: bool = Fals
         lock.release()
 
 
+def after_training_line(cfg: TrainConfig, n_eval: int) -> str:
+    """The banner's second line: what runs after the training bar ends, and the flags that shorten it."""
+    views = f"{n_eval} {cfg.eval_split} view{'s' if n_eval != 1 else ''} (--eval-max-views N renders fewer)"
+    refine = (f", their poses refined first ({cfg.pose_refine_steps} steps)"
+              if cfg.task == "pose" and cfg.pose_refine_steps > 0 else "")
+    video = (f"a {cfg.video_frames}-frame turntable video (--video-frames 0 skips it)" if cfg.video_frames > 0
+             else "no video (--video-frames 0)")
+    return f"after training: evaluation on {views}{refine}; {video}"
+
+
+def progress_legend(cfg: TrainConfig) -> str:
+    """The training bar's abbreviations, spelled out once before it starts."""
+    legend = ("progress bar: lv = active G2fR levels, occ = occupied fraction of the occupancy grid, "
+              "spr = samples per ray, rays = rays per step")
+    if cfg.task == "pose":
+        legend += ", rot / trans = training-pose rotation error (deg) / translation error (x100)"
+    return legend
+
+
 def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwrite: bool) -> dict:
     start_memory_window()  # this run's peak memory, not that of earlier runs in this process
     out_dir = cfg.run_dir()
@@ -210,6 +229,9 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}"
           + (f"; resumed at step {trainer.step}" if mode == "resume" else ""))
+    print(after_training_line(cfg, eval_view_count(trainer)))
+    if progress:
+        print(progress_legend(cfg))
     caveat = task.caveat(scene)
     if caveat:
         print(caveat)
@@ -242,7 +264,7 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
             signal.signal(s, on_signal)
     except ValueError:  # not the main thread: no signal handling
         handlers = {}
-    monitor = Monitor(trainer)
+    monitor = Monitor(trainer, progress=progress)
     trainer.callbacks.append(monitor)
     try:
         trainer.fit(progress, on_step_end)

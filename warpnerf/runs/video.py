@@ -247,14 +247,16 @@ def check_render_memory(trainer, cams: CameraPath, depth: bool = False) -> None:
         raise PathError(problem)
 
 
-def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool = True) -> list[np.ndarray]:
+def render_frames(trainer, cams: CameraPath, depth: bool = False, progress: bool = True,
+                  desc: str = "render") -> list[np.ndarray]:
     """Render every camera of ``cams``: a list of (H, W, 3) uint8 frames, or (H, 2W, 3) with the
     depth map (near = bright, background white) beside the RGB when ``depth``. PathError first when
-    they cannot fit the run's memory budget (:func:`check_render_memory`)."""
+    they cannot fit the run's memory budget (:func:`check_render_memory`). ``progress``: a bar named
+    ``desc`` over the frames."""
     check_render_memory(trainer, cams, depth)
     weights = trainer.level_weights(trainer.cfg.iters)
     out = []
-    for c2w in tqdm(cams.c2w, desc="render", disable=not progress, dynamic_ncols=True):
+    for c2w in tqdm(cams.c2w, desc=desc, disable=not progress, dynamic_ncols=True, unit="frame"):
         img = trainer.renderer.render_image(c2w.to(trainer.device), cams.height, cams.width, cams.focal, cams.cx,
                                             cams.cy, weights)
         rgb = img["rgb"].clamp(0, 1).cpu()
@@ -304,17 +306,18 @@ def write_video(path: str, frames: list[np.ndarray], fps: float = 24.0) -> str:
 
 
 def render_video(trainer, out: str, path: str = "orbit", frames: int = 60, fps: float = 24.0, depth: bool = False,
-                 scale: float = 1.0, progress: bool = True) -> str:
+                 scale: float = 1.0, progress: bool = True, desc: str = "render") -> str:
     """Render camera path ``path`` of a trained ``trainer`` into the video ``out``; returns the file written."""
     cams = make_path(trainer, path, frames, scale)
-    return write_video(out, render_frames(trainer, cams, depth, progress), fps)
+    return write_video(out, render_frames(trainer, cams, depth, progress, desc), fps)
 
 
 def render_run_video(trainer, out_dir: str, frames: int, progress: bool = True) -> str:
     """The run folder's own video: ``turntable.mp4`` (``turntable.gif`` without ffmpeg) along the
     scene's default path (orbit, or spiral for forward-facing scenes)."""
-    return render_video(trainer, os.path.join(out_dir, "turntable.mp4"), default_path(trainer.scene), frames,
-                        fps=12.0, progress=progress)
+    path = default_path(trainer.scene)
+    return render_video(trainer, os.path.join(out_dir, "turntable.mp4"), path, frames, fps=12.0, progress=progress,
+                        desc=f"turntable video ({path})")
 
 
 def read_video(path: str) -> list[np.ndarray]:

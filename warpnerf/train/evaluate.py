@@ -9,6 +9,7 @@ to the same numbers.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import os
 import time
@@ -27,6 +28,10 @@ from warpnerf.train.config import ConfigError, exp_decay
 if TYPE_CHECKING:  # the trainer's modules import this one
     from warpnerf.train.trainer import Trainer
 
+# whether the evaluation running now shows progress: evaluate() sets it around the task's eval_poses hook,
+# whose signature has no progress argument, so that refine_poses called from there shows its bar
+_PROGRESS: contextvars.ContextVar[bool] = contextvars.ContextVar("warpnerf_eval_progress", default=False)
+
 
 @contextlib.contextmanager
 def frozen(module: torch.nn.Module) -> Iterator[None]:
@@ -42,15 +47,17 @@ def frozen(module: torch.nn.Module) -> Iterator[None]:
 
 
 def refine_corrections(trainer: "Trainer", corr: "PoseCorrection", c2w: torch.Tensor, pixels, intrinsics,
-                       weights, steps: int, lr: float, lr_final: float) -> None:
+                       weights, steps: int, lr: float, lr_final: float, progress: bool = False,
+                       desc: str = "refine poses") -> None:
     """``steps`` Adam steps on ``corr``, the se(3) corrections of the (k, 3, 4) poses ``c2w``, against a
     frozen field (the caller freezes it). ``pixels(i)`` gives step i's rays as (row of ``c2w``, u, v,
     target rgb), the same number for every row; ``intrinsics`` is (focal, cx, cy). The loss is the sum
     over rows of each row's mean squared error, so rows are independent: each row's gradient is what
     refining it alone would see. The rate decays exponentially from ``lr`` to ``lr_final``: at a
-    constant rate the last steps leave each pose jittering by about one rate."""
+    constant rate the last steps leave each pose jittering by about one rate. ``progress``: a bar
+    named ``desc`` over the steps."""
     opt = torch.optim.Adam(corr.parameters(), lr=lr)
-    for i in range(steps):
+    for i in tqdm(range(steps), desc=desc, disable=not progress, dynamic_ncols=True, unit="step"):
         for g in opt.param_groups:
             g["lr"] = exp_decay(lr, lr_final, i / max(steps - 1, 1))
         idx, u, v, rgb = pixels(i)
@@ -66,13 +73,17 @@ def refine_corrections(trainer: "Trainer", corr: "PoseCorrection", c2w: torch.Te
         opt.step()
 
 
-def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_step: int = 1024) -> torch.Tensor:
+def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_step: int = 1024,
+                 progress: Optional[bool] = None) -> torch.Tensor:
     """Photometric refinement of (N, 3, 4) poses against ``views``' images with the field frozen
     (BARF's test-time pose optimisation). Returns refined (N, 3, 4) poses.
 
     All views are refined together (:func:`refine_corrections`): every step renders
     ``rays_per_step`` random pixels of each view, ``pose_refine_steps`` steps from ``pose_lr`` to
-    ``pose_lr_final`` as in training."""
+    ``pose_lr_final`` as in training. ``progress`` (None: whatever the :func:`evaluate` calling the
+    task's ``eval_poses`` was asked for) shows a bar over the steps."""
+    if progress is None:
+        progress = _PROGRESS.get()
     n_views = c2w.shape[0]
     corr = PoseCorrection(n_views).to(trainer.device)
     images = views.images.to(trainer.device)
@@ -87,30 +98,49 @@ def refine_poses(trainer: "Trainer", c2w: torch.Tensor, views: Views, rays_per_s
     with frozen(trainer.field):
         refine_corrections(trainer, corr, c2w, pixels, (views.focal, views.cx, views.cy),
                            trainer.level_weights(trainer.cfg.iters), trainer.cfg.pose_refine_steps,
-                           trainer.cfg.pose_lr, trainer.cfg.pose_lr_final)
+                           trainer.cfg.pose_lr, trainer.cfg.pose_lr_final, progress=progress,
+                           desc=f"refine {n_views} test pose{'s' if n_views != 1 else ''}")
     with torch.no_grad():
         return corr(c2w)
 
-def eval_views(trainer: "Trainer") -> Views:
-    """Every ``eval_view_stride``-th view of the ``eval_split`` (test unless settings are being chosen on val)."""
+def _eval_pick(trainer: "Trainer") -> tuple[Views, list[int]]:
     test = getattr(trainer.scene, trainer.cfg.eval_split)
     if test is None:
         raise ConfigError(f"eval_split = '{trainer.cfg.eval_split}', but scene '{trainer.scene.name}' has no such split")
     pick = list(range(0, len(test), trainer.cfg.eval_view_stride))
     if trainer.cfg.eval_max_views:
         pick = pick[: trainer.cfg.eval_max_views]
+    return test, pick
+
+
+def eval_view_count(trainer: "Trainer") -> int:
+    """How many views :func:`evaluate` renders (the run's banner announces it), without copying their images."""
+    return len(_eval_pick(trainer)[1])
+
+
+def eval_views(trainer: "Trainer") -> Views:
+    """Every ``eval_view_stride``-th view of the ``eval_split`` (test unless settings are being chosen on val)."""
+    test, pick = _eval_pick(trainer)
     return test.subset(pick)
 
 def evaluate(trainer: "Trainer", out_dir: Optional[str] = None, progress: bool = True) -> dict:
+    """Render the evaluation views (:func:`eval_views`) at the last step's level weights; PSNR, SSIM,
+    LPIPS, timings and depth error. ``progress``: a bar over the views (and over the pose task's
+    test-pose refinement steps before them)."""
     views = eval_views(trainer)
-    poses = trainer.task.eval_poses(trainer, views)
+    token = _PROGRESS.set(progress)
+    try:
+        poses = trainer.task.eval_poses(trainer, views)
+    finally:
+        _PROGRESS.reset(token)
     weights = trainer.level_weights(trainer.cfg.iters)
     psnrs, ssims, lpips, secs, depth_errs = [], [], [], [], []
     if views.depth is not None:
         z_scale = camera_z_scale(views.height, views.width, views.focal, views.cx, views.cy)
     if out_dir:
         os.makedirs(os.path.join(out_dir, "renders"), exist_ok=True)
-    for k in tqdm(range(len(views)), desc="evaluate", disable=not progress, dynamic_ncols=True):
+    for k in tqdm(range(len(views)), desc=f"evaluate {trainer.cfg.eval_split} views", disable=not progress,
+                  dynamic_ncols=True, unit="view"):
         t0 = time.perf_counter()
         img = trainer.renderer.render_image(poses[k], views.height, views.width, views.focal, views.cx, views.cy,
                                          weights)

@@ -5,7 +5,9 @@ stats)`` after every step. It
 
 * every ``cfg.heldout_every`` steps (and at the last step) renders ``cfg.heldout_views`` test
   views at half resolution and appends their mean PSNR to ``trainer.history["heldout"]`` as
-  (step, dB) pairs, so ``history.json`` and ``training.png`` get the held-out curve;
+  (step, dB) pairs, so ``history.json`` and ``training.png`` get the held-out curve; with
+  ``progress`` a transient bar under the training bar shows each check (the last one runs after
+  the training bar's final step and would otherwise be a silent pause);
 * every ``cfg.log_every`` steps appends the encoding's L_Ψ to ``trainer.history["lipschitz"]``;
 * with ``cfg.log == "tensorboard"`` writes scalars every ``cfg.log_every`` steps to
   ``<run>/tb`` (``pip install 'warpnerf[log]'``, view with ``tensorboard --logdir runs``).
@@ -24,6 +26,7 @@ import time
 from typing import Optional
 
 import torch
+from tqdm.auto import tqdm
 
 from warpnerf.train import metrics as M
 from warpnerf.train.config import ConfigError
@@ -69,8 +72,9 @@ def heldout_split(trainer) -> str:
 class Monitor:
     """The ``Trainer.fit`` callback that records held-out PSNR and writes TensorBoard scalars."""
 
-    def __init__(self, trainer, log_dir: Optional[str] = None):
+    def __init__(self, trainer, log_dir: Optional[str] = None, progress: bool = False):
         cfg = trainer.cfg
+        self.progress = progress
         self.every = max(int(cfg.log_every), 1)
         self.heldout_every = int(cfg.heldout_every)
         self.writer = None
@@ -99,6 +103,7 @@ class Monitor:
         pick = torch.linspace(0, len(test) - 1, k).round().long()
         # pose task: ground-truth poses mapped by the current training-camera alignment, no refinement
         self._test_c2w = lambda: test_cameras(trainer, split)[pick]
+        self._split = split
         f = 2 if min(test.height, test.width) >= 64 else 1  # half resolution: 4x cheaper renders
         images = torch.stack([_area_downscale(test.images[i], f) for i in pick.tolist()])
         return images, test.focal / f, test.cx / f, test.cy / f
@@ -108,7 +113,10 @@ class Monitor:
         images, focal, cx, cy = self._heldout
         weights = trainer.level_weights(step)
         psnrs = []
-        for c2w, gt in zip(self._test_c2w(), images):
+        # leave=False: the bar sits under the training bar while the check runs, then disappears
+        bar = tqdm(zip(self._test_c2w(), images), total=len(images), desc=f"held-out check ({self._split}), step {step + 1}",
+                   disable=not self.progress, leave=False, dynamic_ncols=True, unit="view")
+        for c2w, gt in bar:
             out = trainer.renderer.render_image(c2w.to(trainer.device), gt.shape[0], gt.shape[1], focal, cx, cy,
                                                 weights)
             psnrs.append(M.psnr(out["rgb"].clamp(0, 1).cpu(), gt))
