@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
 
@@ -23,9 +25,49 @@ _WARP_READY = False
 _POOL: ThreadPoolExecutor | None = None
 _NUM_THREADS: int | None = None
 
+# Warp's native library prints this line to the process's stderr at init on every machine without an NVIDIA
+# driver, although nothing was asked of CUDA; init_warp holds it back, and resolve_device names it when CUDA is asked for
+CUDA_DRIVER_MISSING = "Could not find or load the NVIDIA CUDA driver"
+_HELD_BACK: list[str] = []
+
+
+def _init_without_driver_line(wp) -> None:
+    """``wp.init()`` with file descriptor 2 sent to a temporary file (the line comes from C, below
+    ``sys.stderr``); everything it printed except the CUDA-driver line is written to stderr afterwards,
+    so real warnings and errors stay visible."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no usable fd 2 (a closed or replaced stderr)
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            try:
+                sys.stderr.flush()  # Python-level warnings written meanwhile belong to the captured text
+            except (OSError, ValueError):
+                pass
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", errors="replace")
+            kept = []
+            for line in text.splitlines(keepends=True):
+                (_HELD_BACK if CUDA_DRIVER_MISSING in line else kept).append(line)
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
+
 
 def init_warp():
-    """Import and initialise Warp once (quietly); returns the ``warp`` module."""
+    """Import and initialise Warp once (quietly); returns the ``warp`` module.
+
+    Warp's "Could not find or load the NVIDIA CUDA driver" line is held back: on a machine without a
+    GPU it is noise for ``--device auto`` and ``cpu``; :func:`resolve_device` repeats it when CUDA is
+    asked for and missing."""
     global _WARP_READY
     import warp as wp  # lazy: Warp loads with the first op that needs it, never with 'import warpnerf'
 
@@ -35,9 +77,14 @@ def init_warp():
         cache = os.environ.get("WARP_CACHE_PATH")
         if cache:
             wp.config.kernel_cache_dir = cache
-        wp.init()
+        _init_without_driver_line(wp)
         _WARP_READY = True
     return wp
+
+
+def held_back_warp_lines() -> list[str]:
+    """What :func:`init_warp` kept from stderr (Warp's CUDA-driver line on a machine without one)."""
+    return [line.strip() for line in _HELD_BACK]
 
 
 def resolve_device(name: str = "auto") -> str:
@@ -54,7 +101,8 @@ def resolve_device(name: str = "auto") -> str:
         return "cpu"
     if name == "cuda" or name.startswith("cuda:"):
         if not wp.is_cuda_available():
-            raise ValueError(f"device '{name}' requested but Warp sees no CUDA device; use --device cpu or auto")
+            why = "".join(f" ({line})" for line in held_back_warp_lines())
+            raise ValueError(f"device '{name}' requested but Warp sees no CUDA device{why}; use --device cpu or auto")
         return "cuda:0" if name == "cuda" else name
     raise ValueError(f"unknown device '{name}': expected auto, cpu, cuda or cuda:N")
 
