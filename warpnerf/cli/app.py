@@ -24,7 +24,7 @@ from warpnerf.runs import record
 from warpnerf.studies import report
 from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
-from warpnerf.cli.flags import add_config_flags, config_overrides
+from warpnerf.cli.flags import add_config_flags, config_overrides, preset_values, task_for_help
 from warpnerf.cli.outputs import add_output_commands
 from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, build_config, load_toml, resolve_config_file
 
@@ -241,16 +241,24 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"warpnerf: error: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
+    """The ``warpnerf`` parser; ``help_task``: ``train --help`` shows that task's preset values (``--task X --help``)."""
     parser = _Parser(prog="warpnerf", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show full tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it",
-                       epilog="Config flags not given keep the value of --config FILE, else of the task preset "
-                              "(configs/<task>.toml), else the default shown.")
+    preset = preset_values(help_task) if help_task else None
+    if preset:
+        epilog = (f"Defaults shown are task {help_task}'s: {preset[0]} over TrainConfig's defaults (a scene in the "
+                  "LLFF layout adds configs/<task>_forward_facing.toml where one is shipped). Config flags not given "
+                  "keep the value of --config FILE, else of that preset.")
+    else:
+        epilog = ("Defaults shown are TrainConfig's; each task's preset (configs/<task>.toml) changes some: "
+                  "'warpnerf train --task X --help' shows the values task X runs with. Config flags not given keep "
+                  "the value of --config FILE, else of the task preset, else the default shown.")
+    t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it", epilog=epilog)
     t.add_argument("--config", default=None, help="TOML file overriding the task preset, or the name of one shipped in configs/ (e.g. fewshot_paper)")
-    add_config_flags(t)  # one flag per TrainConfig field (warpnerf/cli/flags.py)
+    add_config_flags(t, preset=preset)  # one flag per TrainConfig field (warpnerf/cli/flags.py)
     t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.add_argument("--resume", metavar="RUN", default=None,
@@ -338,8 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(help_task=task_for_help(argv))
     args = parser.parse_args(argv)
     args.argv = argv  # what --record writes as the command
     user_errors: tuple = (UserError, ConfigError, record.RecordError)
