@@ -13,7 +13,7 @@ def test_doctor_prints_one_screen_and_exits_0(capsys):
     out = capsys.readouterr().out
     lines = out.strip().splitlines()
     assert len(lines) <= 24  # one screen
-    for key in ("torch ", "warp ", "device ", "cpu ", "kernels "):
+    for key in ("torch ", "warp ", "device ", "cpu ", "kernels ", "extras ", "data ", "lpips "):
         assert any(line.startswith(key) for line in lines), f"no '{key.strip()}' line in:\n{out}"
     assert torch.__version__ in out
     build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
@@ -76,3 +76,76 @@ def test_uncompiled_kernels_on_a_gpu_are_named():
 def test_bad_arch_is_a_user_error(capsys):
     assert main(["doctor", "--arch", "ampere"]) == 2
     assert "--arch" in capsys.readouterr().err
+
+
+def test_extras_are_read_from_the_package_metadata():
+    reqs = ['numpy>=1.24', 'numpy>=1; extra == "have"', 'no-such-dist-warpnerf>=1; extra == "lack"',
+            'torch>=2; python_version >= "3.8" and extra == "have"']
+    assert doctor.extras_status(reqs) == {"have": [], "lack": ["no-such-dist-warpnerf"]}
+    installed = doctor.extras_status()
+    if installed is not None:  # an installed warpnerf: its extras are pyproject's
+        import tomllib
+        from pathlib import Path
+
+        pyproject = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
+        assert set(installed) == set(pyproject["project"]["optional-dependencies"])
+    (line,) = doctor._extras_lines({"video": [], "log": ["tensorboard"]})
+    assert line == "extras    installed: video; missing: log (pip install 'warpnerf[NAME]')"
+
+
+def test_data_root_is_reported_and_a_bad_one_is_a_problem(tmp_path, monkeypatch):
+    monkeypatch.delenv("WARPNERF_DATA", raising=False)
+    data = doctor.data_root_status()
+    assert data["value"] is None and "not set" in doctor._data_line(data)
+    lego = tmp_path / "nerf_synthetic" / "lego"
+    lego.mkdir(parents=True)
+    (lego / "transforms_train.json").write_text("{}")
+    monkeypatch.setenv("WARPNERF_DATA", str(tmp_path))
+    data = doctor.data_root_status()
+    assert data["scenes"] == ["lego"] and doctor._data_line(data).endswith("1 dataset scene(s) (lego)")
+    assert doctor.problems(_info(data=data)) == []
+    monkeypatch.setenv("WARPNERF_DATA", str(tmp_path / "nope"))
+    data = doctor.data_root_status()
+    (line,) = doctor.problems(_info(data=data))
+    assert str(tmp_path / "nope") in line and "fix or unset $WARPNERF_DATA" in line
+
+
+def test_lpips_line_names_what_is_missing(tmp_path):
+    trunk = tmp_path / "alexnet-owt-7be5be79.pth"
+    lp = {"trunk": str(trunk), "trunk_found": False, "lin": None, "lin_found": False}
+    line = doctor._lpips_line(lp)
+    assert line.startswith("lpips     weights not found: AlexNet trunk " + str(trunk))
+    assert "warpnerf[metrics]" in line
+    lp.update(trunk_found=True, lin="/x/alex.pth", lin_found=True)
+    assert doctor._lpips_line(lp) == f"lpips     weights found: {trunk}, /x/alex.pth"
+    from warpnerf.train.metrics import lpips_weight_files
+
+    found = doctor.lpips_status()  # the same lookup evaluation uses
+    assert (found["trunk_found"] and found["lin_found"]) == (lpips_weight_files("") is not None)
+
+
+def test_kernel_cache_warmth_in_words():
+    assert doctor._cache_warmth(81, 81).startswith("warm for the CPU")
+    assert doctor._cache_warmth(0, 81).startswith("cold for the CPU (0/81")
+    assert doctor._cache_warmth(8, 81).startswith("partly warm for the CPU (8/81")
+
+
+def test_a_warning_while_probing_is_a_problem_never_beside_none_found():
+    import warnings
+
+    import warp
+    from warp._src.logger import log_warning
+
+    before = warp.get_logger()
+    with doctor._recording_warnings() as caught:
+        log_warning("stale kernel cache")
+        warnings.warn("something odd", UserWarning, stacklevel=1)
+    assert caught == ["Warp warns: stale kernel cache", "UserWarning: something odd"]
+    assert warp.get_logger() is before  # Warp's own logger is back
+    assert doctor.problems(_info(warnings=caught)) == caught
+    info = doctor.collect()
+    info["warnings"] = caught
+    info["problems"] = doctor.problems(info)
+    report = doctor.format_report(info)
+    assert "none found" not in report
+    assert "problem   Warp warns: stale kernel cache" in report.splitlines()

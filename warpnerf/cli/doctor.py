@@ -1,8 +1,10 @@
 """``warpnerf doctor``: one screen on what this machine offers warpnerf, and the usual mistakes.
 
 Prints Warp and torch versions and builds (CPU or CUDA torch), the CUDA devices Warp and torch
-see with their architectures, whether the package's Warp kernels are compiled for them, and the
-CPU thread count. ``--compile`` compiles the kernels: on every CUDA device (into Warp's kernel
+see with their architectures, whether the package's Warp kernels are compiled for them (the kernel
+cache warm or cold), the CPU thread count, which optional extras are installed, the data root and
+whether LPIPS's weights are on disk. Warnings Warp or Python raise while it probes are reported as
+problems, so "none found" never stands beside a warning. ``--compile`` compiles the kernels: on every CUDA device (into Warp's kernel
 cache, what training loads), or, without a GPU, ahead of time to PTX for ``--arch`` (default
 sm_70/80/90, mapped onto what the installed NVRTC can target) into the AOT cache.
 
@@ -12,9 +14,12 @@ Nothing here runs at ``import warpnerf``: all probing happens when the command r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
-from importlib.metadata import PackageNotFoundError, version
+import re
+import warnings
+from importlib.metadata import PackageNotFoundError, metadata, version
 
 from warpnerf import openmp
 from warpnerf.cli.errors import UserError
@@ -45,8 +50,100 @@ def _parse_archs(text: str | None) -> tuple[int, ...]:
     return archs
 
 
+_EXTRA_REQ = re.compile(r"""\s*([A-Za-z0-9][A-Za-z0-9._-]*)[^;]*;.*\bextra\s*==\s*['"]([^'"]+)['"]""")
+
+
+def extras_status(requires: list[str] | None = None) -> dict[str, list[str]] | None:
+    """Each optional extra of warpnerf (pyproject's optional-dependencies, read from the installed
+    metadata) -> the distributions of it that are not installed ([] = the extra is installed); None
+    when warpnerf's metadata is not there (a source tree that was never pip-installed)."""
+    if requires is None:
+        try:
+            requires = metadata("warpnerf").get_all("Requires-Dist") or []
+        except PackageNotFoundError:
+            return None
+    out: dict[str, list[str]] = {}
+    for req in requires:
+        m = _EXTRA_REQ.match(req)
+        if not m:
+            continue
+        dist, extra = m.groups()
+        missing = out.setdefault(extra, [])
+        try:
+            version(dist)
+        except PackageNotFoundError:
+            missing.append(dist)
+    return out
+
+
+def data_root_status() -> dict:
+    """``$WARPNERF_DATA``: its value, whether it is a folder, and the dataset scenes found under it."""
+    from warpnerf.data.errors import DatasetError  # lazy: warpnerf.data loads torch
+    from warpnerf.data.resolve import DATA_ENV, data_root_from, dataset_scenes  # lazy: as above
+
+    raw = os.environ.get(DATA_ENV) or None
+    out = {"env": DATA_ENV, "value": raw, "root": None, "scenes": [], "error": None}
+    try:
+        out["root"] = data_root_from(None)
+    except DatasetError as e:
+        out["error"] = str(e)
+    if out["root"]:
+        out["scenes"] = sorted(dataset_scenes(out["root"]))
+    return out
+
+
+def lpips_status() -> dict:
+    """Where LPIPS(alex)'s two weight files are looked for without --lpips-weights, and which are there."""
+    from warpnerf.train.metrics import lpips_default_locations  # lazy: loads torch
+
+    trunk, lin = lpips_default_locations()
+    return {"trunk": trunk, "trunk_found": os.path.isfile(trunk), "lin": lin, "lin_found": lin is not None}
+
+
+@contextlib.contextmanager
+def _recording_warnings():
+    """Collect, instead of printing, what Warp's logger and Python's warnings would print meanwhile
+    (e.g. Warp's stale-kernel-cache warning): doctor reports them among its problems."""
+    import warp  # lazy: keeps --help fast
+
+    caught: list[str] = []
+
+    class _Recorder:  # Warp's Logger protocol (warp.set_logger)
+        def debug(self, message: str) -> None:
+            pass
+
+        def info(self, message: str) -> None:
+            pass
+
+        def warning(self, message: str, category=None, stacklevel: int = 1) -> None:
+            caught.append(f"Warp warns: {message}")
+
+        def error(self, message: str) -> None:
+            caught.append(f"Warp error: {message}")
+
+    set_logger = getattr(warp, "set_logger", None)  # Warp >= 1.12; older ones warn through Python's warnings
+    previous = warp.get_logger() if set_logger else None
+    if set_logger:
+        set_logger(_Recorder())
+    try:
+        with warnings.catch_warnings(record=True) as python_warnings:  # the filters stay: only what would print
+            yield caught
+    finally:
+        if set_logger:
+            set_logger(previous)
+    caught += [f"{w.category.__name__}: {w.message}" for w in python_warnings]
+
+
 def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None) -> dict:
     """Everything ``doctor`` reports, as a dict (also used by the tests)."""
+    with _recording_warnings() as caught:
+        info = _collect(compile_kernels, archs)
+    info["warnings"] = caught
+    info["problems"] = problems(info)
+    return info
+
+
+def _collect(compile_kernels: bool, archs: tuple[int, ...] | None) -> dict:
     import torch  # lazy: keeps --help fast
 
     from warpnerf.ops import registry  # lazy: keeps --help fast (torch)
@@ -103,7 +200,9 @@ def collect(compile_kernels: bool = False, archs: tuple[int, ...] | None = None)
         failures += registry.compile_aot(modules, aot_archs)
     info["aot_compiled"] = {a: sum(registry.aot_compiled(km, a) for km in modules) for a in aot_archs}
     info["compile_failures"] = failures
-    info["problems"] = problems(info)
+    info["extras"] = extras_status()
+    info["data"] = data_root_status()
+    info["lpips"] = lpips_status()
     return info
 
 
@@ -162,6 +261,10 @@ def problems(info: dict) -> list[str]:
             out.append(f"{name}: {info['kernel_modules'] - n} of {info['kernel_modules']} kernel modules not compiled yet "
                        "(the first training step compiles them; 'warpnerf doctor --compile' does it now)")
     out += [f"does not compile: {f}" for f in info["compile_failures"]]
+    data = info.get("data") or {}
+    if data.get("error"):
+        out.append(f"{data['error']}: dataset scenes cannot be found; fix or unset ${data['env']}")
+    out += info.get("warnings", [])  # whatever warned while probing: never "none found" beside a warning
     return out
 
 
@@ -194,17 +297,68 @@ def format_report(info: dict) -> str:
         lines.append("device    no CUDA device: warpnerf runs on the CPU")
     threads_src = "WARPNERF_THREADS" if info["threads_env"] else "min(2, cores)"
     lines.append(f"cpu       {info['cpu_cores']} cores, {info['threads']} thread(s) for Warp launches ({threads_src}); "
-                 f"kernels compiled {info['cpu_compiled']}/{info['kernel_modules']} modules; "
                  f"OpenMP wait {info.get('openmp_wait', 'default')}")
-    lines.append(f"kernels   {info['kernels']} kernels in {info['kernel_modules']} modules; cache {info['kernel_cache']}")
+    lines.append(f"kernels   {info['kernels']} kernels in {info['kernel_modules']} modules; cache {info['kernel_cache']}: "
+                 + _cache_warmth(info['cpu_compiled'], info['kernel_modules']))
     if info["aot_archs"]:
         done = ", ".join(f"sm_{a} {n}/{info['kernel_modules']}" for a, n in info["aot_compiled"].items())
         lines.append(f"PTX       ahead-of-time (no GPU needed): {done}  [{info['aot_cache']}]")
         if info["aot_unsupported"]:
             lines.append(f"          (this NVRTC cannot target {', '.join(f'sm_{a}' for a in info['aot_unsupported'])}: "
                          "the next supported architecture stands in)")
+    lines += _extras_lines(info.get("extras"))
+    lines.append(_data_line(info.get("data")))
+    lines.append(_lpips_line(info.get("lpips")))
     lines += [f"problem   {p}" for p in info["problems"]] or ["problems  none found"]
-    return "\n".join(lines)
+    return "\n".join(line for line in lines if line)
+
+
+def _cache_warmth(compiled: int, total: int) -> str:
+    """The CPU kernel cache in words: warm (every module compiled), cold (none) or partly warm."""
+    if compiled >= total:
+        return f"warm for the CPU ({compiled}/{total} modules compiled)"
+    later = "a run compiles the ones it uses in its first steps, once"
+    if compiled == 0:
+        return f"cold for the CPU (0/{total} modules compiled; {later})"
+    return f"partly warm for the CPU ({compiled}/{total} modules compiled; {later})"
+
+
+def _extras_lines(extras: dict | None) -> list[str]:
+    if extras is None:
+        return ["extras    unknown: warpnerf's package metadata is missing (pip install -e . in the source tree)"]
+    have = [e for e, missing in extras.items() if not missing]
+    lack = [e for e, missing in extras.items() if missing]
+    line = f"extras    installed: {', '.join(have) or 'none'}"
+    if lack:
+        line += f"; missing: {', '.join(lack)} (pip install 'warpnerf[NAME]')"
+    return [line]
+
+
+def _data_line(data: dict | None) -> str:
+    if not data:
+        return ""
+    env = f"${data['env']}"
+    if data["value"] is None:
+        return f"data      {env} not set: scene names resolve to built-in scenes unless --data-root is given"
+    if data["error"]:
+        return f"data      {env} = {data['value']}: not a folder (see problems)"
+    scenes = data["scenes"]
+    shown = ", ".join(scenes[:8]) + (", ..." if len(scenes) > 8 else "")
+    return f"data      {env} = {data['root']}: {len(scenes)} dataset scene(s)" + (f" ({shown})" if scenes else "")
+
+
+def _lpips_line(lp: dict | None) -> str:
+    if not lp:
+        return ""
+    if lp["trunk_found"] and lp["lin_found"]:
+        return f"lpips     weights found: {lp['trunk']}, {lp['lin']}"
+    missing = []
+    if not lp["trunk_found"]:
+        missing.append(f"AlexNet trunk {lp['trunk']}")
+    if not lp["lin_found"]:
+        missing.append("lpips' alex.pth (pip install 'warpnerf[metrics]')")
+    return (f"lpips     weights not found: {'; '.join(missing)}; LPIPS is reported as null unless --lpips-weights "
+            "names them (docs/outputs.md#lpips)")
 
 
 def _arch_list(archs) -> str:

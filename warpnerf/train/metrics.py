@@ -218,20 +218,27 @@ def _lin_keys(state: dict) -> bool:
     return any(k.startswith(("lin0.", "lins.0.")) for k in state)
 
 
-def lpips_weight_files(path: str = "") -> Optional[list[str]]:
-    """The weight files LPIPS(alex) would load, or None when they are not all on disk.
-
-    ``path``: "" = look in the usual places (torch hub's checkpoint folder for the trunk, the
-    installed lpips package for the linear layers; lpips is located, never imported); a file =
-    a full LPIPS state dict, or a torchvision AlexNet checkpoint (linear layers then from lpips);
-    a folder = holding ``alexnet-owt-7be5be79.pth`` and ``alex.pth``."""
+def lpips_default_locations() -> tuple[str, Optional[str]]:
+    """Where LPIPS(alex) looks without ``--lpips-weights``: (the trunk's path in torch hub's checkpoint
+    folder, which may not exist; lpips' ``alex.pth`` if the lpips package is installed with it, else None).
+    lpips is located, never imported; ``warpnerf doctor`` reports both."""
     lin = None
     spec = importlib.util.find_spec("lpips")
     if spec is not None and spec.origin:
         cand = os.path.join(os.path.dirname(spec.origin), "weights", "v0.1", "alex.pth")
         lin = cand if os.path.isfile(cand) else None
+    return os.path.join(torch.hub.get_dir(), "checkpoints", ALEXNET_CHECKPOINT), lin
+
+
+def lpips_weight_files(path: str = "") -> Optional[list[str]]:
+    """The weight files LPIPS(alex) would load, or None when they are not all on disk.
+
+    ``path``: "" = look in the usual places (:func:`lpips_default_locations`: torch hub's checkpoint
+    folder for the trunk, the installed lpips package for the linear layers); a file =
+    a full LPIPS state dict, or a torchvision AlexNet checkpoint (linear layers then from lpips);
+    a folder = holding ``alexnet-owt-7be5be79.pth`` and ``alex.pth``."""
+    trunk, lin = lpips_default_locations()
     if not path:
-        trunk = os.path.join(torch.hub.get_dir(), "checkpoints", ALEXNET_CHECKPOINT)
         return [trunk, lin] if lin and os.path.isfile(trunk) else None
     if os.path.isdir(path):
         trunk, lin_here = os.path.join(path, ALEXNET_CHECKPOINT), os.path.join(path, "alex.pth")
@@ -296,4 +303,4 @@ def lpips_or_none(pred: torch.Tensor, gt: torch.Tensor) -> Optional[float]:
 
 
 __all__ = ["psnr", "psnr_from_mse", "ssim", "ssim_map", "gaussian_window_1d", "lpips_or_none", "configure_lpips",
-           "LPIPSNet", "AlexNetTrunk", "load_lpips_net", "lpips_weight_files"]
+           "LPIPSNet", "AlexNetTrunk", "load_lpips_net", "lpips_weight_files", "lpips_default_locations"]
