@@ -1,20 +1,28 @@
 """Monitoring: TensorBoard scalars, the held-out PSNR curve and the encoding's Lipschitz bound (eq. 17)."""
 
+import io
 import json
 
+import numpy as np
 import pytest
 import torch
 
 from tiny_scene import tiny_scene
 from warpnerf.model.encoders import make_grid_encoder
 from warpnerf.train.config import ConfigError, build_config
-from warpnerf.train.monitor import TAGS, Monitor, lipschitz_bound
+from warpnerf.train.monitor import IMAGE_TAGS, LEVEL_BLOCK, TAGS, Monitor, final_tags, lipschitz_bound
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer
 
 TINY = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128, hidden=32, target_samples=8192,
             batch_rays=256, occ_resolution=32, occ_warmup=16, occ_update_every=8, lr=2e-2, video_frames=0,
             march_steps=256)
+
+
+def _png(data: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
 
 
 def test_lipschitz_bound_follows_eq17():
@@ -56,12 +64,44 @@ def test_tensorboard_event_file_holds_every_tag(tmp_path):
     trainer = Trainer(cfg, tiny_scene(size=24, n_test=3), make_task(cfg), "cpu")
     monitor = Monitor(trainer)
     trainer.callbacks.append(monitor)
+    rates, weights = {}, {}  # what the optimizers used and the G2fR weights, step by step, for comparison
+
+    def record(trainer, step, stats):
+        rates[step] = {**{f"lr/{g['name']}": g["lr"] for g in trainer.optimizer.param_groups},
+                       "lr/pose": trainer.task.optimizer.param_groups[0]["lr"]}
+        weights[step] = list(trainer.level_weights(step))
+
+    trainer.callbacks.append(record)
     trainer.fit(progress=False)
     monitor.close()
-    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 0})
     acc.Reload()
     tags = set(acc.Tags()["scalars"])
     assert set(TAGS) <= tags, set(TAGS) - tags
+    assert set(IMAGE_TAGS) <= set(acc.Tags()["images"])
+    # learning rates: the ones Adam used at each logged step (warm-up and decay included), per group
+    for tag in ("lr/grid", "lr/mlp", "lr/pose"):
+        events = acc.Scalars(tag)
+        assert [e.step for e in events] == [0, 4, 8, 11]
+        assert [e.value for e in events] == pytest.approx([rates[e.step][tag] for e in events], rel=1e-6)
+    assert acc.Scalars("lr/grid")[0].value < acc.Scalars("lr/grid")[1].value  # the warm-up is visible
+    # G2fR level weights: one block per level, brightness 255 w_m, as the schedule gave them
+    shots = acc.Images("g2fr/level_weights")
+    assert [e.step for e in shots] == [0, 4, 8, 11]
+    for e in shots:
+        img = _png(e.encoded_image_string)
+        assert img.shape == (LEVEL_BLOCK, LEVEL_BLOCK * 8, 3)
+        expect = np.round(np.array(weights[e.step]) * 255)
+        assert img[0, ::LEVEL_BLOCK, 0].tolist() == expect.tolist()
+    assert _png(shots[0].encoded_image_string).mean() < _png(shots[-1].encoded_image_string).mean() == 255
+    # held-out images at the held-out checks: the 2 views side by side (24 px: below 64 px the check renders at
+    # full resolution, not half)
+    for tag in ("heldout/prediction", "heldout/ground_truth"):
+        events = acc.Images(tag)
+        assert [e.step for e in events] == [5, 11]
+        assert (events[0].height, events[0].width) == (24, 48)
+    gt = _png(acc.Images("heldout/ground_truth")[0].encoded_image_string)
+    assert gt.std() > 0  # the scene's images, not a blank
     steps = [e.step for e in acc.Scalars("train/loss")]
     assert steps == [0, 4, 8, 11]  # every log_every steps and the last
     assert [e.step for e in acc.Scalars("heldout/psnr")] == [5, 11]
@@ -94,3 +134,27 @@ def test_run_folder_has_heldout_curve(tmp_path):
     assert [s for s, _ in hist["lipschitz"]] == [0, 4, 7]
     assert (tmp_path / "run" / "training.png").stat().st_size > 1000
     assert 0 <= metrics["heldout_seconds"] < metrics["train_seconds"]
+
+
+def test_final_metrics_are_logged_at_the_last_step(tmp_path, monkeypatch):
+    """run_training with --log tensorboard: test/psnr and test/ssim (test/lpips when its weights are on disk) at the
+    last step, equal to metrics.json's."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from warpnerf.runs.run import run_training
+
+    monkeypatch.setenv("WARPNERF_CACHE", str(tmp_path / "cache"))
+    cfg = build_config("full", overrides={**TINY, "scene": "chair", "builtin_resolution": 24, "iters": 6,
+                                          "heldout_every": 0, "eval_max_views": 1, "out": str(tmp_path / "run"),
+                                          "log_every": 3, "log": "tensorboard", "checkpoint_every": 0})
+    metrics = run_training(cfg, progress=False)
+    acc = EventAccumulator(str(tmp_path / "run" / "tb"))
+    acc.Reload()
+    for tag in final_tags("test"):
+        key = tag.split("/")[1]
+        if metrics[key] is None:  # LPIPS without its weights: not logged
+            assert tag not in acc.Tags()["scalars"]
+            continue
+        (event,) = acc.Scalars(tag)
+        assert event.step == 5 and event.value == pytest.approx(metrics[key], rel=1e-6)

@@ -272,14 +272,20 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
             if not torch.isfinite(p).all():
                 raise TrainingError(f"parameter {name} became non-finite during training; try a lower --lr")
         save()
-    finally:
+    except BaseException:
         monitor.close()
+        raise
+    finally:
         for s, h in handlers.items():
             signal.signal(s, h)
-    _fault("after_train")
-    t_eval = time.perf_counter()
-    results = evaluate(trainer, out_dir, progress)
-    eval_seconds = time.perf_counter() - t_eval
+    try:  # the monitor stays open for the final metrics (TensorBoard's test/psnr, ... at the last step)
+        _fault("after_train")
+        t_eval = time.perf_counter()
+        results = evaluate(trainer, out_dir, progress)
+        eval_seconds = time.perf_counter() - t_eval
+        monitor.log_final(results, cfg.iters - 1, cfg.eval_split)
+    finally:
+        monitor.close()
     metrics = {
         "psnr": results["psnr"],
         "ssim": results["ssim"],

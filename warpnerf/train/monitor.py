@@ -12,11 +12,22 @@ stats)`` after every step. It
 * with ``cfg.log == "tensorboard"`` writes scalars every ``cfg.log_every`` steps to
   ``<run>/tb`` (``pip install 'warpnerf[log]'``, view with ``tensorboard --logdir runs``).
 
-TensorBoard tags (:data:`TAGS`): ``train/loss`` (MSE), ``train/psnr`` (dB, training batch),
+TensorBoard scalar tags (:data:`TAGS`): ``train/loss`` (MSE), ``train/psnr`` (dB, training batch),
 ``heldout/psnr`` (dB), ``g2fr/active_levels``, ``g2fr/lipschitz`` (L_Ψ, paper eq. 17, see
 :func:`lipschitz_bound`), ``pose/rot_err_deg`` and ``pose/trans_err_x100`` (pose task only,
 after Sim(3) alignment), ``perf/samples_per_ray``, ``perf/step_seconds`` (wall time per step,
-averaged since the previous log; includes the held-out renders of that interval).
+averaged since the previous log; includes the held-out renders of that interval), ``lr/grid`` and
+``lr/mlp`` (the rates Adam used at that step, one per parameter group) and ``lr/pose`` (pose task:
+the camera corrections' rate).
+
+Images (:data:`IMAGE_TAGS`): ``g2fr/level_weights`` every ``log_every`` steps (one 8x8 block per
+level, coarse to fine from the left, brightness w_m: black = masked, white = fully on);
+``heldout/prediction`` and ``heldout/ground_truth`` at each held-out check (the held-out views side
+by side, as the check renders them: half resolution from 64 px up).
+
+Once evaluation is done, :meth:`Monitor.log_final` adds the final metrics at the last step
+(:func:`final_tags`): ``test/psnr``, ``test/ssim`` and, when its weights are on disk, ``test/lpips``
+(``val/...`` when ``eval_split = "val"``).
 """
 
 from __future__ import annotations
@@ -33,7 +44,35 @@ from warpnerf.train.config import ConfigError
 from warpnerf.train.views import test_cameras
 
 TAGS = ("train/loss", "train/psnr", "heldout/psnr", "g2fr/active_levels", "g2fr/lipschitz", "pose/rot_err_deg",
-        "pose/trans_err_x100", "perf/samples_per_ray", "perf/step_seconds")
+        "pose/trans_err_x100", "perf/samples_per_ray", "perf/step_seconds", "lr/grid", "lr/mlp", "lr/pose")
+IMAGE_TAGS = ("g2fr/level_weights", "heldout/prediction", "heldout/ground_truth")
+LEVEL_BLOCK = 8  # pixels per level (square) in the g2fr/level_weights image
+
+
+def final_tags(split: str = "test") -> tuple[str, ...]:
+    """The scalar tags :meth:`Monitor.log_final` writes: the final metrics measured on ``split``."""
+    return tuple(f"{split}/{m}" for m in ("psnr", "ssim", "lpips"))
+
+
+def level_weights_image(weights) -> torch.Tensor:
+    """(1, 8, 8 L) uint8 image of the G²fR level weights: level m's block has brightness round(255 w_m)."""
+    w = torch.tensor([float(v) for v in weights], dtype=torch.float32)
+    row = (w * 255).round().to(torch.uint8).repeat_interleave(LEVEL_BLOCK)
+    return row[None, None, :].expand(1, LEVEL_BLOCK, row.numel()).contiguous()
+
+
+def _as_uint8(img: torch.Tensor) -> torch.Tensor:
+    return (img.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def learning_rates(trainer) -> dict[str, float]:
+    """``lr/<group>`` -> the rate each Adam group used at the step just taken (the trainer sets them
+    before stepping), plus ``lr/pose`` for a task with its own optimizer (the pose corrections)."""
+    out = {f"lr/{g.get('name', i)}": float(g["lr"]) for i, g in enumerate(trainer.optimizer.param_groups)}
+    task_opt = getattr(trainer.task, "optimizer", None)
+    if task_opt is not None:
+        out["lr/pose"] = float(task_opt.param_groups[0]["lr"])
+    return out
 
 
 @torch.no_grad()
@@ -110,28 +149,38 @@ class Monitor:
 
     def heldout_psnr(self, trainer, step: int) -> float:
         """Mean PSNR (dB) of the held-out views rendered with the field and level weights of ``step``."""
+        return self._heldout_check(trainer, step)[0]
+
+    def _heldout_check(self, trainer, step: int) -> tuple[float, list[torch.Tensor]]:
+        """(mean PSNR dB, the (h, w, 3) renders) of the held-out views at ``step``."""
         images, focal, cx, cy = self._heldout
         weights = trainer.level_weights(step)
-        psnrs = []
+        psnrs, preds = [], []
         # leave=False: the bar sits under the training bar while the check runs, then disappears
         bar = tqdm(zip(self._test_c2w(), images), total=len(images), desc=f"held-out check ({self._split}), step {step + 1}",
                    disable=not self.progress, leave=False, dynamic_ncols=True, unit="view")
         for c2w, gt in bar:
             out = trainer.renderer.render_image(c2w.to(trainer.device), gt.shape[0], gt.shape[1], focal, cx, cy,
                                                 weights)
-            psnrs.append(M.psnr(out["rgb"].clamp(0, 1).cpu(), gt))
-        return float(sum(psnrs) / len(psnrs))
+            preds.append(out["rgb"].clamp(0, 1).cpu())
+            psnrs.append(M.psnr(preds[-1], gt))
+        return float(sum(psnrs) / len(psnrs)), preds
 
     def __call__(self, trainer, step: int, stats: dict) -> None:
         last = step == trainer.cfg.iters - 1
         values = {}
         if self._heldout is not None and ((step + 1) % self.heldout_every == 0 or last):
             t0 = time.perf_counter()
-            value = self.heldout_psnr(trainer, step)
+            value, preds = self._heldout_check(trainer, step)
             self.heldout_seconds += time.perf_counter() - t0
             trainer.history["heldout"].append((step, value))
             trainer.history["heldout_epochs"].append(trainer.epochs)
             values["heldout/psnr"] = value
+            if self.writer is not None:  # the views side by side: (h, K w, 3)
+                self.writer.add_image("heldout/prediction", _as_uint8(torch.cat(preds, dim=1)), step,
+                                      dataformats="HWC")
+                self.writer.add_image("heldout/ground_truth", _as_uint8(torch.cat(list(self._heldout[0]), dim=1)),
+                                      step, dataformats="HWC")
         if step % self.every == 0 or last:
             now = time.perf_counter()
             values.update({
@@ -141,7 +190,11 @@ class Monitor:
                 "g2fr/lipschitz": lipschitz_bound(trainer.field.encoder, trainer.level_weights(step)),
                 "perf/samples_per_ray": stats["samples_per_ray"],
                 "perf/step_seconds": (now - self._t_last) / max(step - self._step_last, 1),
+                **learning_rates(trainer),
             })
+            if self.writer is not None:
+                self.writer.add_image("g2fr/level_weights", level_weights_image(trainer.level_weights(step)), step,
+                                      dataformats="CHW")
             self._t_last, self._step_last = now, step
             trainer.history["lipschitz"].append((step, values["g2fr/lipschitz"]))
             hist = getattr(trainer.task, "history", None)
@@ -152,6 +205,15 @@ class Monitor:
             for tag, v in values.items():
                 self.writer.add_scalar(tag, float(v), step)
 
+    def log_final(self, results: dict, step: int, split: str = "test") -> None:
+        """The final metrics (``evaluate``'s psnr, ssim, lpips; lpips only when measured) as scalars at ``step``."""
+        if self.writer is None:
+            return
+        for tag, key in zip(final_tags(split), ("psnr", "ssim", "lpips")):
+            if results.get(key) is not None:
+                self.writer.add_scalar(tag, float(results[key]), step)
+
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+            self.writer = None
