@@ -36,7 +36,9 @@ def test_sphere_mesh_from_an_analytic_density():
     tr = SimpleNamespace(field=Ball(), occupancy=OccupancyGrid((-1, -1, -1, 1, 1, 1), 8), device=torch.device("cpu"),
                          cfg=SimpleNamespace(iters=1, memory_budget_mb=4096), level_weights=lambda s: None,
                          scene=SimpleNamespace(ray_space=RaySpace()))
-    verts, faces, colors = E.extract_mesh(tr, resolution=65, threshold=50.0)
+    mesh = E.extract_mesh(tr, resolution=65, threshold=50.0)
+    verts, faces, colors = mesh.verts, mesh.faces, mesh.colors
+    assert "1 pieces" in mesh.summary
     r = np.linalg.norm(verts, axis=-1)
     assert abs(r.mean() - 0.5) < 0.02 and r.std() < 0.02  # grid spacing 1/32
     tri = verts[faces].astype(np.float64)
@@ -45,6 +47,59 @@ def test_sphere_mesh_from_an_analytic_density():
     # colour = field colour along the inward normal: for a ball centred at 0 that is -x/|x|
     want = ((-verts / r[:, None]) * 0.5 + 0.5) * 255
     assert np.abs(colors.astype(float) - want).mean() < 8
+    # the written normals point outwards: along x / |x| for the ball
+    assert np.einsum("ij,ij->i", mesh.normals, verts / r[:, None]).min() > 0.9
+
+
+def _cube(origin, size=1.0):
+    """Vertices (8, 3) and triangles (12, 3) of an axis-aligned cube, counter-clockwise seen from outside."""
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], np.float64)  # index 4x + 2y + z
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return np.asarray(origin, np.float64) + size * corners, faces
+
+
+def test_cube_faces_and_vertex_normals_point_outwards():
+    verts, faces = _cube((0, 0, 0), 2.0)
+    tri = verts[faces]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    outward = tri.mean(1) - 1.0  # centroid minus the cube's centre
+    # each face normal is the axis direction of its side: parallel to the centroid offset's largest axis
+    side = np.eye(3)[np.abs(outward).argmax(1)] * np.sign(outward)
+    assert np.allclose(face_n / np.linalg.norm(face_n, axis=1, keepdims=True), side)
+    n = E.vertex_normals(verts, faces)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    assert np.array_equal(np.sign(n), np.sign(verts - 1.0))  # each corner's normal points into its octant
+    # closed form on an octahedron: four equal faces around each vertex, so the normal is the vertex direction
+    ov = np.concatenate([np.eye(3), -np.eye(3)])
+    of = np.array([(0, 1, 2), (1, 3, 2), (3, 4, 2), (4, 0, 2), (1, 0, 5), (3, 1, 5), (4, 3, 5), (0, 4, 5)])
+    assert np.allclose(E.vertex_normals(ov, of), ov, atol=1e-6)
+
+
+def test_floaters_are_removed_by_piece_size():
+    va, fa = _cube((0, 0, 0))
+    vb, fb = _cube((3, 0, 0))
+    extra = np.array([[9, 9, 9], [9, 9.1, 9], [9, 9, 9.1],  # 16-18: a lone triangle
+                      [5, 5, 5], [5, 5.1, 5], [5, 5, 5.1], [5.1, 5, 5], [5.1, 5.1, 5],  # 19-23: two triangles, one shared vertex
+                      [-0.1, 0, 0], [-0.1, -0.1, 0],  # 24-25: a triangle hanging off cube A's vertex 0
+                      [7, 7, 7]], np.float64)  # 26: in no face
+    verts = np.concatenate([va, vb, extra])
+    faces = np.concatenate([fa, fb + 8, [(16, 17, 18), (19, 20, 21), (19, 22, 23), (0, 24, 25)]])
+    label, n = E.face_components(faces, len(verts))
+    # by hand: cube A + its hanging triangle (13 faces), cube B (12), the lone triangle (1), the pair (2)
+    assert n == 4 and sorted(np.bincount(label)) == [1, 2, 12, 13]
+    keep, kept, (before, after) = E.remove_small_components(faces, len(verts), 2)
+    assert (before, after) == (4, 3) and len(kept) == 27 and len(keep) == 8 + 2 + 8 + 5
+    keep, kept, (before, after) = E.remove_small_components(faces, len(verts), 5)
+    assert after == 2 and len(kept) == 25 and sorted(keep) == list(range(16)) + [24, 25]
+    # re-indexed faces name the same points
+    assert {tuple(map(tuple, t)) for t in verts[keep][kept]} == \
+        {tuple(map(tuple, t)) for t in verts[np.concatenate([fa, fb + 8, [(0, 24, 25)]])]}
+    # nothing is large enough: the largest piece stays
+    _, kept, (_, after) = E.remove_small_components(faces, len(verts), 100)
+    assert after == 1 and len(kept) == 13
+    _, kept, (_, after) = E.remove_small_components(faces, len(verts), 1)
+    assert after == 4 and len(kept) == len(faces)
 
 
 def test_ply_round_trip(tmp_path):
@@ -54,14 +109,30 @@ def test_ply_round_trip(tmp_path):
     E.write_ply(str(tmp_path / "m.ply"), verts, colors, faces)
     v, c, f = E.read_ply(str(tmp_path / "m.ply"))
     assert np.array_equal(v, verts) and np.array_equal(c, colors) and np.array_equal(f, faces)
+    assert E.read_ply_normals(str(tmp_path / "m.ply")) is None
+    normals = -verts
+    E.write_ply(str(tmp_path / "n.ply"), verts, colors, faces, normals)
+    v, c, f = E.read_ply(str(tmp_path / "n.ply"))
+    assert np.array_equal(v, verts) and np.array_equal(c, colors) and np.array_equal(f, faces)
+    assert np.array_equal(E.read_ply_normals(str(tmp_path / "n.ply")), normals)
 
 
 def test_chair_mesh_matches_the_true_mesh(chair_run, tmp_path, capsys):
     out = tmp_path / "chair.ply"
     assert main(["export", "--run", str(chair_run), "--what", "mesh", "--resolution", "96", "--threshold", "5",
                  "--out", str(out), "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "pieces" in said and "iso-level 5" in said, said
     verts, colors, faces = E.read_ply(str(out))
     assert faces is not None and len(faces) > 1000
+    label, n = E.face_components(faces, len(verts))
+    assert n == 1 or np.bincount(label).min() >= E.DEFAULT_MIN_COMPONENT_FACES  # no floater left
+    # unit vertex normals that agree with the (outward, CCW) faces around them
+    normals = E.read_ply_normals(str(out))
+    assert normals is not None and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
+    tri = verts[faces].astype(np.float64)
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (np.einsum("ij,ij->i", face_n, normals[faces].sum(1)) > 0).mean() > 0.95
     true = scene_mesh("chair")
     lo, hi = true.bounds()
     size = float((hi - lo).max())  # 2.24 scene units (the chair's height)
@@ -94,6 +165,18 @@ def test_chair_point_cloud(chair_run, tmp_path):
 def test_export_errors_are_one_line(chair_run, tmp_path, capsys):
     assert main(["export", "--run", str(chair_run), "--threshold", "1e9", "--resolution", "16", "--quiet"]) == 2
     assert "never crosses the iso-level" in capsys.readouterr().err
+    assert main(["export", "--run", str(chair_run), "--keep-floaters", "--min-component-faces", "5", "--quiet"]) == 2
+    assert "leave out --min-component-faces" in capsys.readouterr().err
+
+
+def test_export_keep_floaters(chair_run, tmp_path, capsys):
+    out = tmp_path / "all.ply"
+    assert main(["export", "--run", str(chair_run), "--resolution", "48", "--threshold", "5", "--keep-floaters",
+                 "--out", str(out), "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "floaters kept" in said, said
+    verts, _, faces = E.read_ply(str(out))
+    assert f"{len(verts):,} vertices, {len(faces):,} faces" in said
 
 
 @pytest.mark.parametrize("argv, needle", [

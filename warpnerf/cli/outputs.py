@@ -39,6 +39,10 @@ def add_output_commands(sub) -> None:
     e.add_argument("--resolution", type=int, default=256, help="mesh: density samples per axis of the scene box")
     e.add_argument("--threshold", type=float, default=None,
                    help="mesh: iso-level, density per scene unit (default: warpnerf.outputs.export.DEFAULT_THRESHOLD)")
+    e.add_argument("--min-component-faces", type=int, default=None, metavar="N",
+                   help="mesh: drop connected pieces with fewer faces, floaters (default: "
+                        "warpnerf.outputs.export.DEFAULT_MIN_COMPONENT_FACES, 100; the largest piece always stays)")
+    e.add_argument("--keep-floaters", action="store_true", help="mesh: keep every connected piece")
     e.add_argument("--scale", type=float, default=0.5, help="points: render resolution relative to the training views")
     e.add_argument("--min-opacity", type=float, default=0.95, help="points: keep pixels at least this opaque")
     e.add_argument("--max-points", type=int, default=1_000_000)
@@ -86,20 +90,26 @@ def cmd_render(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from warpnerf.outputs.export import (DEFAULT_THRESHOLD, ExportError,  # lazy: keeps --help fast (torch)
-                                         extract_mesh, extract_points, write_ply)
+    from warpnerf.outputs.export import (DEFAULT_MIN_COMPONENT_FACES,  # lazy: keeps --help fast (torch)
+                                         DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply)
     from warpnerf.runs.folder import load_run  # lazy: keeps --help fast (torch)
 
     if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
         raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")
+    if args.keep_floaters and args.min_component_faces is not None:
+        raise UserError("--keep-floaters keeps every piece: leave out --min-component-faces")
+    if args.min_component_faces is not None and args.min_component_faces < 1:
+        raise UserError("need --min-component-faces >= 1 (--keep-floaters keeps every piece)")
     out = args.out or os.path.join(args.run, f"{args.what}.ply")
     trainer = load_run(args.run, args.device, progress=not args.quiet)
     try:
         if args.what == "mesh":
             threshold = DEFAULT_THRESHOLD if args.threshold is None else args.threshold
-            verts, faces, colors = extract_mesh(trainer, args.resolution, threshold)
-            write_ply(out, verts, colors, faces)
-            print(f"mesh: {len(verts)} vertices, {len(faces)} faces (iso-level {threshold}) written to {out}")
+            min_faces = (1 if args.keep_floaters else DEFAULT_MIN_COMPONENT_FACES if args.min_component_faces is None
+                         else args.min_component_faces)
+            mesh = extract_mesh(trainer, args.resolution, threshold, min_faces)
+            write_ply(out, mesh.verts, mesh.colors, mesh.faces, mesh.normals)
+            print(f"mesh: {mesh.summary}, iso-level {threshold}, written to {out}")
         else:
             points, colors = extract_points(trainer, args.scale, args.min_opacity, args.max_points,
                                             max_views=args.max_views)
