@@ -156,7 +156,7 @@ def test_process_remakes_its_own_output_only_with_overwrite(tmp_path, capsys, fa
     photos(tmp_path / "photos")
     out = tmp_path / "data" / "scene"
     assert process(tmp_path, out) == 0  # a new folder
-    assert sorted(os.listdir(out)) == sorted([MARKER, "colmap", "images", "sparse"])
+    assert sorted(os.listdir(out)) == sorted([MARKER, "colmap", "images", "images_2", "images_4", "sparse"])
     capsys.readouterr()
     before = tree(tmp_path)
     assert process(tmp_path, out) == 2
@@ -176,3 +176,89 @@ def test_process_in_place_and_into_an_empty_folder(tmp_path, fake_colmap):
     photos(tmp_path / "photos")
     (tmp_path / "empty").mkdir()
     assert process(tmp_path, tmp_path / "empty") == 0
+
+
+# --- --video: the sharpest frame of each window, then the photo pipeline (issue #65) ----------------------
+
+
+def _texture(seed, size=64):
+    return np.random.default_rng(seed).integers(0, 256, (size, size, 3), dtype=np.uint8)
+
+
+def _blur(img, r=3):
+    """Box blur of radius r (wrapping at the borders)."""
+    acc = np.zeros(img.shape, np.float64)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            acc += np.roll(img, (dy, dx), axis=(0, 1))
+    return (acc / (2 * r + 1) ** 2).round().astype(np.uint8)
+
+
+def write_video(path, frames, fps=10):
+    iio = pytest.importorskip("imageio.v2")
+    pytest.importorskip("imageio_ffmpeg")  # the FFMPEG writer plugin
+    with iio.get_writer(str(path), fps=fps, codec="libx264", quality=10, macro_block_size=16,
+                        pixelformat="yuv420p") as w:
+        for f in frames:
+            w.append_data(f)
+    return str(path)
+
+
+def test_video_keeps_the_sharpest_frame_of_each_window(tmp_path):
+    from warpnerf.data.process import extract_frames, sharpness
+
+    sharp_at = {1, 7, 8}  # windows of 4 frames: 0-3, 4-7, 8-11
+    frames = [_texture(i) if i in sharp_at else _blur(_texture(i)) for i in range(12)]
+    video = write_video(tmp_path / "v.mp4", frames)
+    res = extract_frames(video, str(tmp_path / "frames"), num_frames=3, progress=False)
+    assert res == {"frames": 3, "video_frames": 12, "picked": [1, 7, 8]}
+    written = sorted(os.listdir(tmp_path / "frames"))
+    assert written == ["frame_00001.png", "frame_00002.png", "frame_00003.png"]
+    # what was written is the sharp frame, not a blurred one
+    first = np.asarray(Image.open(tmp_path / "frames" / written[0]))
+    assert sharpness(first) > 5 * sharpness(frames[0])
+
+
+def test_video_frame_counts(tmp_path):
+    from warpnerf.data.process import extract_frames
+
+    video = write_video(tmp_path / "v.mp4", [_blur(_texture(i), 1 + i % 3) for i in range(30)])
+    assert extract_frames(video, str(tmp_path / "a"), num_frames=7, progress=False)["frames"] == 7
+    assert len(os.listdir(tmp_path / "a")) == 7
+    res = extract_frames(video, str(tmp_path / "b"), num_frames=100, progress=False)  # fewer frames: every one
+    assert res["frames"] == 30 and res["picked"] == list(range(30))
+
+
+def test_process_video_runs_the_photo_pipeline(tmp_path, capsys, fake_colmap):
+    from warpnerf.data.process import MARKER
+
+    video = write_video(tmp_path / "v.mp4", [_blur(_texture(i), 1 + i % 3) for i in range(20)])
+    out = tmp_path / "data" / "clip"
+    assert main(["process", "--video", video, "--out", str(out), "--num-frames", "5", "--quiet"]) == 0
+    assert "5 frames kept of 20" in capsys.readouterr().out
+    assert sorted(os.listdir(out)) == sorted([MARKER, "colmap", "images", "images_2", "images_4", "sparse"])
+    assert len(os.listdir(out / "images")) == 5
+    for d, size in (("images", 64), ("images_2", 32), ("images_4", 16)):
+        names = sorted(os.listdir(out / d))
+        assert names == [f"frame_{k:05d}.png" for k in range(1, 6)]
+        assert Image.open(out / d / names[0]).size == (size, size)
+    # re-made only with --overwrite, like a photo folder's output
+    assert main(["process", "--video", video, "--out", str(out), "--num-frames", "4", "--quiet"]) == 2
+    assert main(["process", "--video", video, "--out", str(out), "--num-frames", "4", "--num-downscales", "0",
+                 "--overwrite", "--quiet"]) == 0
+    assert len(os.listdir(out / "images")) == 4 and not os.path.exists(out / "images_2")
+
+
+def test_process_video_without_the_extra_is_one_line(tmp_path, capsys, monkeypatch, fake_colmap):
+    import sys
+
+    from door import one_line_error, tree
+
+    (tmp_path / "v.mp4").write_bytes(b"not really a video")
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails as when the extra is missing
+    before = tree(tmp_path)
+    assert main(["process", "--video", str(tmp_path / "v.mp4"), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    one_line_error(capsys, "imageio-ffmpeg", "pip install 'warpnerf[video]'")
+    assert tree(tmp_path) == before
+    assert main(["process", "--video", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    one_line_error(capsys, "video not found", "nope.mp4")

@@ -1,4 +1,10 @@
-"""``warpnerf process --images DIR --out DATASET``: photos -> COLMAP poses -> a scene folder.
+"""``warpnerf process --images DIR | --video FILE --out DATASET``: photos -> COLMAP poses -> a scene folder.
+
+``--video FILE`` first extracts about ``--num-frames`` frames (imageio-ffmpeg, ``pip install
+'warpnerf[video]'``): the video's frames are split into that many equal windows of consecutive frames
+and the sharpest frame of each (largest variance of the Laplacian of its grey image) is kept, so
+motion-blurred frames are left out. They become ``DATASET/images/frame_00001.png, ...`` and the
+photo pipeline below runs on them (sequential matching by default).
 
 Runs COLMAP's structure from motion (SIFT feature extraction, exhaustive or sequential matching,
 incremental mapping) through pycolmap (``pip install 'warpnerf[colmap]'``), else through the
@@ -6,6 +12,7 @@ incremental mapping) through pycolmap (``pip install 'warpnerf[colmap]'``), else
 reads::
 
     DATASET/images/...           # copies of the photos
+    DATASET/images_2/, images_4/ # the photos downscaled 2x, 4x (as nerfstudio writes them; --num-downscales)
     DATASET/sparse/0/*.bin       # the largest reconstruction
     DATASET/colmap/database.db   # features and matches (kept for re-runs / inspection)
     DATASET/.warpnerf-process    # marker: made by warpnerf process (``--overwrite`` re-makes only such folders)
@@ -28,6 +35,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 from tqdm.auto import tqdm
 
 from warpnerf.data.errors import DatasetError
@@ -35,7 +43,10 @@ from warpnerf.data.images import IMAGE_SUFFIXES
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 MARKER = ".warpnerf-process"  # in DATASET: warpnerf process wrote this folder
-OUTPUTS = ("images", "sparse", "colmap")  # what process writes in DATASET (besides the marker)
+MAX_DOWNSCALES = 3  # images_2, images_4, images_8
+# what process writes in DATASET (besides the marker)
+OUTPUTS = ("images", "sparse", "colmap") + tuple(f"images_{2 ** k}" for k in range(1, MAX_DOWNSCALES + 1))
+DEFAULT_NUM_FRAMES = 100  # --video: frames kept (one per window of consecutive frames)
 
 
 def list_images(folder: str) -> list[str]:
@@ -81,6 +92,128 @@ def backend() -> str:
     raise DatasetError("warpnerf process needs COLMAP: pip install 'warpnerf[colmap]' (pycolmap), or put the colmap program on the PATH")
 
 
+def _start_out(out: str, stale: list[str]) -> None:
+    """Remove an earlier output's entries ``stale`` and (re)write the marker."""
+    for name in stale:  # an earlier output being re-made: its images, model and database go
+        path = os.path.join(out, name)
+        if os.path.isdir(path):
+            shutil.rmtree(path)
+        else:
+            os.unlink(path)
+    try:
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, MARKER), "w") as fh:
+            fh.write("written by warpnerf process; --overwrite may re-make this folder\n")
+    except OSError as e:
+        raise DatasetError(f"--out {out} cannot be written: {e.strerror or e}; choose another folder") from None
+
+
+def write_downscaled(out: str, num_downscales: int) -> None:
+    """``out/images_2``, ``images_4``, ... (``num_downscales`` of them): each photo of ``out/images``
+    shrunk by 2, 4, ... (box filter, sizes rounded down, at least 1 pixel), same file names."""
+    from PIL import Image  # lazy: only when downscaled copies are written
+
+    src = os.path.join(out, "images")
+    for k in range(1, num_downscales + 1):
+        f = 2 ** k
+        dst = os.path.join(out, f"images_{f}")
+        os.makedirs(dst, exist_ok=True)
+        for name in list_images(src):
+            with Image.open(os.path.join(src, name)) as im:
+                size = (max(im.width // f, 1), max(im.height // f, 1))
+                im.resize(size, Image.BOX).save(os.path.join(dst, name))
+
+
+def sharpness(frame: np.ndarray) -> float:
+    """Variance of the 4-neighbour Laplacian of the frame's grey image: larger is sharper."""
+    g = np.asarray(frame, np.float32)
+    if g.ndim == 3:
+        g = g[..., :3].mean(-1)
+    lap = 4 * g[1:-1, 1:-1] - g[:-2, 1:-1] - g[2:, 1:-1] - g[1:-1, :-2] - g[1:-1, 2:]
+    return float(lap.var()) if lap.size else 0.0
+
+
+def _video_reader(video: str):
+    if not os.path.isfile(video):
+        raise DatasetError(f"video not found: {video}")
+    try:
+        import imageio_ffmpeg  # noqa: F401  # optional extra: warpnerf[video]
+    except ImportError:
+        raise DatasetError("warpnerf process --video needs imageio-ffmpeg: pip install 'warpnerf[video]'") from None
+    import imageio.v2 as iio  # lazy: only --video reads videos
+
+    try:
+        return iio.get_reader(video, format="FFMPEG")
+    except Exception as e:  # noqa: BLE001  (imageio/ffmpeg raise many kinds for a file that is not a video)
+        raise DatasetError(f"cannot read video {video}: {str(e).strip().splitlines()[0] if str(e).strip() else e}") from None
+
+
+def extract_frames(video: str, folder: str, num_frames: int = DEFAULT_NUM_FRAMES, progress: bool = True) -> dict:
+    """Write about ``num_frames`` frames of ``video`` to ``folder`` as frame_00001.png, ...: the video's
+    frames split into ``num_frames`` equal windows of consecutive frames (every frame when it has fewer),
+    the sharpest (:func:`sharpness`) of each. One window's best frame is held in memory at a time.
+
+    Returns {"frames": written, "video_frames": frames read, "picked": [index of each written frame]}."""
+    if num_frames < 1:
+        raise DatasetError(f"--num-frames must be >= 1, got {num_frames}")
+    from imageio.v2 import imwrite  # lazy: only --video reads videos
+
+    reader = _video_reader(video)
+    with reader:
+        try:
+            n = int(reader.count_frames())
+        except Exception:  # noqa: BLE001  (a stream ffmpeg cannot count: one window per frame)
+            n = 0
+        windows = min(num_frames, n) if n > 0 else num_frames
+        os.makedirs(folder, exist_ok=True)
+        picked: list[int] = []
+        best = None  # (score, frame index, frame) of the current window
+        window = -1
+
+        def flush():
+            if best is not None:
+                picked.append(best[1])
+                imwrite(os.path.join(folder, f"frame_{len(picked):05d}.png"), best[2])
+
+        read = 0
+        for i, frame in enumerate(tqdm(reader, total=n or None, desc="video: frames", unit="frame",
+                                       disable=not progress, dynamic_ncols=True)):
+            read = i + 1
+            w = min(i * windows // n, windows - 1) if n > 0 else i
+            if w != window:
+                flush()
+                best, window = None, w
+            score = sharpness(frame)
+            if best is None or score > best[0]:
+                best = (score, i, np.asarray(frame))
+        flush()
+    if not picked:
+        raise DatasetError(f"no frame could be read from {video}")
+    return {"frames": len(picked), "video_frames": read, "picked": picked}
+
+
+def process_video(video: str, out: str, num_frames: int = DEFAULT_NUM_FRAMES, overwrite: bool = False,
+                  progress: bool = True, use: str | None = None, num_downscales: int = 2, **kwargs) -> dict:
+    """Extract the sharpest ~``num_frames`` frames of ``video`` into ``out/images``
+    (:func:`extract_frames`), then :func:`process_images` on them (``kwargs``: its options).
+
+    Returns process_images' dict plus "video_frames" (frames the video has)."""
+    if num_frames < 3:
+        raise DatasetError(f"--num-frames must be >= 3 (COLMAP needs several views), got {num_frames}")
+    if not 0 <= num_downscales <= MAX_DOWNSCALES:
+        raise DatasetError(f"--num-downscales must be 0..{MAX_DOWNSCALES}, got {num_downscales}")
+    _video_reader(video).close()  # a missing file or extra fails before --out is touched
+    stale = check_out(out, video, overwrite)
+    which = use or backend()
+    _start_out(out, stale)
+    frames = extract_frames(video, os.path.join(out, "images"), num_frames, progress)
+    # out now holds only the marker and the frames: process them in place
+    res = process_images(os.path.join(out, "images"), out, use=which, progress=progress, overwrite=True,
+                         num_downscales=num_downscales, **kwargs)
+    res["video_frames"] = frames["video_frames"]
+    return res
+
+
 def process_images(
     images: str,
     out: str,
@@ -95,6 +228,7 @@ def process_images(
     use: str | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    num_downscales: int = 2,
 ) -> dict:
     """Run structure from motion on the photos in ``images`` and write the dataset ``out``.
 
@@ -107,6 +241,7 @@ def process_images(
         min_registered: fewer registered images is an error.
         use: force "pycolmap" or "colmap" (default: what is installed).
         overwrite: re-make ``out`` when it is an earlier output of this command (see :func:`check_out`).
+        num_downscales: also write ``images_2``, ``images_4``, ... (that many; 0: none).
 
     Returns {"images": N, "registered": M, "points": P, "seconds": t, "backend": name}.
     """
@@ -114,22 +249,13 @@ def process_images(
         raise DatasetError(f"--camera-model {camera_model} is not one warpnerf loads ({', '.join(CAMERA_MODELS)})")
     if matcher not in ("exhaustive", "sequential"):
         raise DatasetError(f"--matcher must be exhaustive or sequential, got {matcher}")
+    if not 0 <= num_downscales <= MAX_DOWNSCALES:
+        raise DatasetError(f"--num-downscales must be 0..{MAX_DOWNSCALES}, got {num_downscales}")
     names = list_images(images)
     stale = check_out(out, images, overwrite)
     which = use or backend()
     t0 = time.time()
-    for name in stale:  # an earlier output being re-made: its images, model and database go
-        path = os.path.join(out, name)
-        if os.path.isdir(path):
-            shutil.rmtree(path)
-        else:
-            os.unlink(path)
-    try:
-        os.makedirs(out, exist_ok=True)
-        with open(os.path.join(out, MARKER), "w") as fh:
-            fh.write("written by warpnerf process; --overwrite may re-make this folder\n")
-    except OSError as e:
-        raise DatasetError(f"--out {out} cannot be written: {e.strerror or e}; choose another folder") from None
+    _start_out(out, stale)
     work = os.path.join(out, "colmap")
     img_out = os.path.join(out, "images")
     if os.path.abspath(images) != os.path.abspath(img_out):
@@ -166,6 +292,7 @@ def process_images(
         )
     if registered < len(names):
         print(f"warpnerf process: {registered} of {len(names)} images registered; the others are left out", file=sys.stderr)
+    write_downscaled(out, num_downscales)
     return {"images": len(names), "registered": int(registered), "points": int(n_points),
             "seconds": round(time.time() - t0, 1), "backend": which}
 
@@ -251,14 +378,21 @@ def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, s
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("process", help="photos -> COLMAP camera poses -> a dataset folder warpnerf trains on")
-    p.add_argument("--images", required=True, help="folder of photos")
-    p.add_argument("--out", required=True, help="dataset folder to write (images/, sparse/0/, colmap/)")
+    p = subparsers.add_parser("process", help="photos or a video -> COLMAP camera poses -> a dataset folder warpnerf trains on")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", help="folder of photos")
+    src.add_argument("--video", help="video file: its sharpest frame of each of --num-frames windows becomes a photo "
+                                     "(needs pip install 'warpnerf[video]')")
+    p.add_argument("--num-frames", type=int, default=DEFAULT_NUM_FRAMES, help="--video: frames to extract")
+    p.add_argument("--out", required=True, help="dataset folder to write (images/, images_2/, images_4/, sparse/0/, colmap/)")
     p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS)
     p.add_argument("--camera-params", default=None, help="known intrinsics, COLMAP order, comma-separated (kept fixed)")
     p.add_argument("--per-image-camera", action="store_true", help="estimate a camera per photo (mixed devices/zoom)")
-    p.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"))
+    p.add_argument("--matcher", default=None, choices=("exhaustive", "sequential"),
+                   help="default: sequential for --video, exhaustive for --images")
     p.add_argument("--max-image-size", type=int, default=1600)
+    p.add_argument("--num-downscales", type=int, default=2,
+                   help=f"also write images_2, images_4, ... (that many, 0..{MAX_DOWNSCALES}; 0: none)")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--overwrite", action="store_true",
                    help="re-make --out when it holds an earlier 'warpnerf process' output (other folders: never)")
@@ -267,9 +401,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    res = process_images(args.images, args.out, camera_model=args.camera_model, camera_params=args.camera_params,
-                         single_camera=not args.per_image_camera, matcher=args.matcher,
-                         max_image_size=args.max_image_size, progress=not args.quiet, overwrite=args.overwrite)
+    opts = dict(camera_model=args.camera_model, camera_params=args.camera_params,
+                single_camera=not args.per_image_camera, max_image_size=args.max_image_size, progress=not args.quiet,
+                overwrite=args.overwrite, num_downscales=args.num_downscales)
+    if args.video:
+        res = process_video(args.video, args.out, args.num_frames, matcher=args.matcher or "sequential", **opts)
+        print(f"video: {res['images']} frames kept of {res['video_frames']} (the sharpest of each window)")
+    else:
+        res = process_images(args.images, args.out, matcher=args.matcher or "exhaustive", **opts)
     print(f"registered {res['registered']} of {res['images']} images, {res['points']} points, "
           f"{res['seconds']} s ({res['backend']})")
     print(f"dataset: {os.path.abspath(args.out)}  (train with: warpnerf train --scene {os.path.basename(os.path.normpath(args.out))} "
