@@ -257,7 +257,7 @@ def fewshot_table(rows: list[dict]) -> str:
         paper = {} if builtin else paper_numbers(scene or "", "fewshot", "ngp")
         seeds = sorted({s for arm in by_arm.values() for s in arm}, key=str)
         base = by_arm.get("none", {})
-        epochs = _mean_std([r["metrics"].get("epochs") for r in base.values()], 0)
+        epochs = _mean_std([r["metrics"].get("epochs") for r in base.values()], 1)
         name = f"{scene} (built-in procedural, not NeRF-synthetic {scene})" if builtin else str(scene)
         cells = [record, name, view_set, regime, ",".join(map(str, seeds)), epochs]
         for key, digits in (("psnr", 2), ("ssim", 3)):

@@ -178,8 +178,12 @@ def plot_band_curves(path: str, panels: Mapping[str, Mapping[str, tuple]], xlabe
     """One panel per entry of ``panels`` (panel title -> {label: (x, mean, std)}): each label's mean
     curve with a band of +-1 std (e.g. PSNR against epochs over seeds). Returns the path."""
     n = max(len(panels), 1)
-    fig = _figure((5.0 * n, 4.0))
-    axes = fig.subplots(1, n, squeeze=False)[0]
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig = _figure((5.0 * cols, 4.0 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[n:]:
+        ax.set_visible(False)
     for ax, (panel, curves) in zip(axes, panels.items()):
         for i, (label, (x, mean, std)) in enumerate(curves.items()):
             colour, style = _RUN_COLOURS[i % len(_RUN_COLOURS)], ("-", "--", ":")[i // len(_RUN_COLOURS) % 3]
