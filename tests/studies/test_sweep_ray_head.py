@@ -46,8 +46,12 @@ def ray_head(tmp_path):
     head_dir.mkdir()
     port = _free_port()
     env = {**os.environ, **RAY_ENV}
-    p = _ray("start", "--head", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
-             "--disable-usage-stats", cwd=head_dir, env=env)
+    try:
+        p = _ray("start", "--head", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+                 "--disable-usage-stats", cwd=head_dir, env=env)
+    except subprocess.TimeoutExpired:
+        _ray("stop", "--force", cwd=head_dir, env=env)
+        pytest.skip("ray start --head did not finish in 300 s on this host")
     if p.returncode != 0:
         _ray("stop", "--force", cwd=head_dir, env=env)
         pytest.skip(f"ray start --head failed on this host: {p.stderr.strip().splitlines()[-1:]}")
