@@ -24,11 +24,11 @@ def error_lines(stderr: str) -> list[str]:
     return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith(_WARP_NOTICES)]
 
 
-def one_line_error(capsys, *needles) -> str:
-    """The captured stderr is one 'warpnerf: error: ...' line (Warp's notices aside) holding every needle."""
+def one_line_error(capsys, *needles, prefix: str = "warpnerf: error: ") -> str:
+    """The captured stderr is one line starting with ``prefix`` (Warp's notices aside) holding every needle."""
     err = error_lines(capsys.readouterr().err)
     assert len(err) == 1, err
-    assert err[0].startswith("warpnerf: error: ") and "Traceback" not in err[0]
+    assert err[0].startswith(prefix) and "Traceback" not in err[0]
     for n in needles:
         assert n in err[0], (n, err[0])
     return err[0]

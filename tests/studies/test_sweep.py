@@ -15,6 +15,7 @@ import time
 
 import pytest
 
+from chair_run import TINY_FIELD_TOML
 from warpnerf.studies.sweep import SweepError, SweepSpec, expand, load_spec, run_sweep
 from warpnerf.studies.tables import tables_markdown
 from warpnerf.train.config import ConfigError
@@ -32,19 +33,7 @@ iters = 20
 eval_max_views = 1
 video_frames = 0
 heldout_every = 0
-levels = 8
-log2_table_size = 15
-base_resolution = 8
-max_resolution = 256
-hidden = 32
-target_samples = 4096
-batch_rays = 256
-occ_resolution = 32
-occ_warmup = 32
-occ_update_every = 8
-march_steps = 64
-lr = 0.04
-"""
+""" + TINY_FIELD_TOML
 
 
 def write_spec(path, out, scenes):

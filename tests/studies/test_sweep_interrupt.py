@@ -21,7 +21,7 @@ import time
 import pytest
 import torch
 
-from door import error_lines, tree
+from door import error_lines, one_line_error, tree
 from warpnerf.cli import main
 
 SPEC = """out = "{out}"
@@ -62,12 +62,7 @@ def spec(tmp_path, monkeypatch):
 
 
 def stopped_line(capsys, *needles) -> str:
-    err = error_lines(capsys.readouterr().err)
-    assert len(err) == 1, err
-    assert err[0].startswith("warpnerf: sweep interrupted: ") and "Traceback" not in err[0]
-    for n in needles:
-        assert n in err[0], (n, err[0])
-    return err[0]
+    return one_line_error(capsys, *needles, prefix="warpnerf: sweep interrupted: ")
 
 
 def status(out) -> dict:

@@ -1,6 +1,7 @@
 """The reproduction table: the paper's numbers (Tab. 1, Tab. 3), layout, paper numbers beside ours."""
 
 import pytest
+from chair_run import TINY_FIELD_TOML
 
 from warpnerf.studies.paper import BARF, MIPNERF360, NERF_SYNTHETIC, PAPER, barf_numbers, paper_numbers
 from warpnerf.studies.tables import format_table
@@ -325,22 +326,7 @@ def test_bad_table_flag_is_one_line_exit_2_before_any_training(flag, value, need
     assert not (tmp_path / "o").exists()
 
 
-TINY_FIELD = """builtin_resolution = 32
-eval_max_views = 1
-heldout_every = 0
-levels = 8
-log2_table_size = 15
-base_resolution = 8
-max_resolution = 256
-hidden = 32
-target_samples = 4096
-batch_rays = 256
-occ_resolution = 32
-occ_warmup = 32
-occ_update_every = 8
-march_steps = 64
-lr = 0.04
-"""
+TINY_FIELD = "builtin_resolution = 32\neval_max_views = 1\nheldout_every = 0\n" + TINY_FIELD_TOML
 
 
 def test_table_command_trains_paired_view_sets_and_seeds(tmp_path, monkeypatch, capsys):

@@ -61,7 +61,6 @@ import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from importlib import resources
 from typing import Any, Callable, Optional
 
 import torch
@@ -69,7 +68,7 @@ from tqdm.auto import tqdm
 
 from warpnerf import device as devmod
 from warpnerf.studies.tables import write_tables
-from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, TrainConfig, build_config, tomllib
+from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, TrainConfig, build_config, shipped_toml, tomllib
 
 TASKS = ("full", "fewshot", "pose")
 # arm name -> the TrainConfig keys that make it; "nog2fr" is the baseline the masked arms are compared with
@@ -207,10 +206,7 @@ def load_spec(path: str) -> SweepSpec:
 
 def shipped_spec(name: str) -> Optional[str]:
     """Path of ``configs/sweeps/<name>.toml`` shipped with the package, or None."""
-    stem = os.path.basename(name)
-    stem = stem[:-5] if stem.endswith(".toml") else stem
-    path = str(resources.files("warpnerf.configs").joinpath("sweeps", f"{stem}.toml"))
-    return path if os.path.exists(path) else None
+    return shipped_toml(name, "sweeps")
 
 
 @dataclass

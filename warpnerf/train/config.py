@@ -308,15 +308,21 @@ def preset_path(task: str) -> str:
     return str(resources.files("warpnerf.configs").joinpath(f"{task}.toml"))
 
 
-def resolve_config_file(path: str) -> str:
-    """``path`` itself when it exists, else the shipped ``configs/<name>.toml`` it names
-    (``--config fewshot_paper`` works from any folder and after a plain ``pip install``)."""
-    if os.path.exists(path):
-        return path
-    stem = os.path.basename(path)
+def shipped_toml(name: str, folder: str = "") -> Optional[str]:
+    """Path of ``configs/[folder/]<name>.toml`` shipped with the package (``name`` may end in .toml or
+    carry a folder, whose base name counts), or None when there is no such file."""
+    stem = os.path.basename(name)
     stem = stem[:-5] if stem.endswith(".toml") else stem
-    shipped = str(resources.files("warpnerf.configs").joinpath(f"{stem}.toml"))
-    return shipped if os.path.sep not in path.rstrip(os.path.sep) and os.path.exists(shipped) else path
+    path = str(resources.files("warpnerf.configs").joinpath(*([folder] if folder else []), f"{stem}.toml"))
+    return path if os.path.exists(path) else None
+
+
+def resolve_config_file(path: str) -> str:
+    """``path`` itself when it exists, else the shipped ``configs/<name>.toml`` a bare name names
+    (``--config fewshot_paper`` works from any folder and after a plain ``pip install``)."""
+    if os.path.exists(path) or os.path.sep in path.rstrip(os.path.sep):
+        return path
+    return shipped_toml(path) or path
 
 
 FORWARD_FACING_SUFFIX = "_forward_facing"
