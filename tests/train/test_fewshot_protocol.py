@@ -120,3 +120,32 @@ def test_config_names_a_shipped_file(tmp_path, monkeypatch):
     assert build_config("fewshot", "fewshot_paper.toml").iters == 7
     with pytest.raises(ConfigError, match="not found"):
         build_config("fewshot", "no_such_preset")
+
+
+def test_config_file_task_picks_the_preset_when_no_task_is_given(tmp_path):
+    # `warpnerf train --config fewshot_paper` once trained task full with G²fR off: the file's
+    # `task = "fewshot"` was overwritten by --task's default
+    cfg = build_config(None, "fewshot_paper")
+    assert cfg.task == "fewshot"
+    assert cfg == build_config("fewshot", "fewshot_paper")  # the few-shot preset lies beneath the file
+    assert build_config("pose", "fewshot_paper").task == "pose"  # an explicit --task still wins
+    assert build_config(None).task == "full"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('task = "fewshoot"\n')
+    with pytest.raises(ConfigError, match="task"):
+        build_config(None, str(bad))
+
+
+def test_cli_train_config_file_sets_the_task(tmp_path, monkeypatch):
+    import warpnerf.runs.run as run_mod
+    from warpnerf.cli.app import main
+
+    seen = {}
+
+    def fake_run(cfg, **kwargs):
+        seen["cfg"] = cfg
+        return {"psnr": 0.0, "ssim": 0.0, "iters": cfg.iters, "train_seconds": 0.0, "render_seconds_per_view": 0.0}
+
+    monkeypatch.setattr(run_mod, "run_training", fake_run)
+    main(["train", "--config", "fewshot_paper", "--scene", "chair", "--out", str(tmp_path / "r"), "--quiet"])
+    assert seen["cfg"].task == "fewshot" and seen["cfg"].g2fr

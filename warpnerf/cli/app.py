@@ -259,7 +259,7 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a NeRF on a scene and evaluate it", epilog=epilog)
     t.add_argument("--config", default=None, help="TOML file overriding the task preset, or the name of one shipped in configs/ (e.g. fewshot_paper)")
     add_config_flags(t, preset=preset)  # one flag per TrainConfig field (warpnerf/cli/flags.py)
-    t.set_defaults(task="full")  # the task picks the preset, so it is never "not given"
+    t.set_defaults(task=None)  # not given: the --config file's task, else full (build_config)
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.add_argument("--resume", metavar="RUN", default=None,
                    help="continue the unfinished run folder RUN from its last checkpoint")

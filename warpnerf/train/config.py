@@ -340,16 +340,21 @@ def forward_facing_preset(task: str, scene: str, data_root: Optional[str]) -> Op
     return path if is_forward_facing(scene, data_root) else None
 
 
-def build_config(task: str, config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
+def build_config(task: Optional[str], config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
     """Defaults < task preset < forward-facing preset < ``config_file`` < ``overrides`` (only keys
     whose value is not None).
 
+    ``task`` None (``--task`` not given): the config file's ``task`` key picks the preset, else
+    ``full`` (``--config fewshot_paper`` trains few-shot with the few-shot preset beneath it).
     The forward-facing preset applies where :func:`forward_facing_preset` finds one."""
+    file_values = load_toml(resolve_config_file(config_file)) if config_file else {}
+    if task is None:
+        task = file_values.get("task", TrainConfig.task)
+        check_choice("task", task)
     values: dict[str, Any] = {}
     preset = preset_path(task)
     if os.path.exists(preset):
         values.update(load_toml(preset))
-    file_values = load_toml(resolve_config_file(config_file)) if config_file else {}
     overrides = renamed_keys(overrides or {})
     for k in overrides:
         if k not in _field_types():
