@@ -77,6 +77,17 @@ def test_holdout_split_and_intrinsics(llff_scene):
     assert half.train.images.shape == (8, 3, 4, 3) and half.train.focal == 5.0
 
 
+def test_barf_split_holds_out_the_last_tenth_by_name(llff_scene):
+    """BARF's and GARF's LLFF protocol: the last int(0.1 N) images by file name are the test views
+    (fern: 18 and 19 of 20); with fewer than ten images, still one."""
+    root, _, _ = llff_scene
+    scene = load_llff(root, factor=4, test="last10")
+    assert scene.test.ids == [9] and scene.train.ids == list(range(9))
+    np.testing.assert_allclose(scene.test.images[0].numpy(), 90 / 255, atol=1e-6)  # image k is 10 k / 255
+    with pytest.raises(DatasetError, match="test must be one of every8, last10"):
+        load_llff(root, factor=4, test="last")
+
+
 def test_wrong_factor_lists_existing_folders(llff_scene):
     root, _, _ = llff_scene
     with pytest.raises(DatasetError, match=r"missing image folder .*images_8.*images_4"):

@@ -25,7 +25,8 @@ def _run_folder(path, metrics: dict, config_toml: str) -> str:
 
 def _pose_metrics(seed, g2fr, rot, trans, psnr, scene="lego", source="dataset"):
     return {"scene": scene, "scene_source": source, "task": "pose", "model": "ngp", "g2fr": g2fr, "iters": 3000,
-            "seed": seed, "rot_err_deg": rot, "trans_err_x100": trans, "psnr": psnr, "ssim": 0.9, "lpips": None,
+            "seed": seed, "rot_err_deg": rot, "rot_err_deg_barf": rot + 0.001, "trans_err_x100": trans, "psnr": psnr,
+            "ssim": 0.9, "lpips": None,
             "n_train_views": 100, "train_seconds": 200.0, "render_seconds_per_view": 0.5, "threads": 2,
             "config_hash": "h", "heldout_history": [[0, 1.0]]}
 
@@ -121,8 +122,11 @@ def test_paper_table_means_seeds_and_sets_the_paper_beside(tmp_path):
     lego = next(line for line in text.splitlines() if line.startswith("| lego"))
     mean, std = statistics.fmean([0.040, 0.060]), statistics.stdev([0.040, 0.060])
     paper = paper_numbers("lego", "pose", "ngp")
-    assert f"{mean:.3f} ± {std:.3f} ({paper['w/']['rot_err_deg']:.3f})" in lego
-    assert f"1.000 ({paper['w/o']['rot_err_deg']:.3f})" in lego
+    # the paper's rotation errors are BARF's float32 metric: they sit beside ours in that metric
+    cells = [c.strip() for c in lego.split("|")]
+    assert cells[4:6] == [f"{mean:.3f} ± {std:.3f}", "1.000"]  # our unclamped metric: no bracket
+    assert cells[6:8] == [f"{mean + 0.001:.3f} ± {std:.3f} ({paper['w/']['rot_err_deg']:.3f})",
+                          f"1.001 ({paper['w/o']['rot_err_deg']:.3f})"]
     assert "seeds 0,1" in lego and "noise 0.15" in lego
     assert "chair" not in text  # a built-in scene is not the paper's chair
     assert "200k" not in text and "20k" in text  # the pose regime is quoted, not the few-shot one

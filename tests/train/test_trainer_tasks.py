@@ -156,3 +156,33 @@ def test_config_precedence_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="unknown task"):
         make_task(build_config("full").__class__(task="nope"))
 
+
+
+def test_pose_identity_start_puts_every_camera_at_the_average_pose():
+    """--pose-init identity (BARF's LLFF protocol): every training camera starts at [I | 0], the
+    average pose of a recentred forward-facing scene, with BARF's rates unscaled (no noise sigma to
+    scale them by); a scene whose cameras look every way is refused in one line."""
+    from types import SimpleNamespace
+
+    from warpnerf.geometry.cameras import evaluate_poses, look_at
+    from warpnerf.geometry.rayspace import RaySpace
+    from warpnerf.train.config import TrainConfig
+    from warpnerf.train.tasks import PoseTask
+
+    centres = torch.tensor([[x, y, 0.0] for x in (-0.3, 0.0, 0.3) for y in (-0.1, 0.1)])
+    gt = look_at(centres, target=(0.0, 0.0, -5.0), up=(0.0, 1.0, 0.0))
+    ndc = SimpleNamespace(kind="llff", name="rig", ray_space=RaySpace.ndc(100.0, 64, 48), train="views")
+    trainer = SimpleNamespace(scene=ndc, train_c2w=gt, device="cpu")
+    task = PoseTask(TrainConfig(task="pose", pose_init="identity", pose_lr=3e-3))
+    assert task.train_views(ndc) == "views"
+    task.setup(trainer)
+    torch.testing.assert_close(task.current_c2w(), torch.eye(3, 4).expand(6, 3, 4))
+    assert task.sigmas == (0.0, 0.0)
+    assert task.optimizer.param_groups[0]["lr"] == pytest.approx(3e-3)
+    # the start's errors are the ground truth's own spread around the average pose, finite
+    expected = evaluate_poses(torch.eye(3, 4).expand(6, 3, 4), gt, "orientations")
+    assert task.initial["rot_err_deg"] == pytest.approx(expected["rot_err_deg"]) and math.isfinite(expected["rot_err_deg"])
+    assert task.initial["rot_err_deg_unaligned"] > 1.0  # look_at tilts the outer cameras towards the target
+    world = SimpleNamespace(kind="blender", name="lego", ray_space=RaySpace(), train="views")
+    with pytest.raises(ConfigError, match="forward-facing"):
+        task.train_views(world)

@@ -162,6 +162,8 @@ def _pose_summary(m: dict) -> list[str]:
     if "rot_err_deg" in m:
         aligned = " (orientations aligned)" if m.get("pose_alignment") == "orientations" else ""
         parts += [f"rot err {m['rot_err_deg']:.3f} deg{aligned}", f"trans err (BARF) x100 {m['trans_err_x100']:.3f}"]
+        if "rot_err_deg_barf" in m:  # BARF's evaluation code: centres aligned, float32 arccos clamp
+            parts.append(f"BARF's metric: rot {m['rot_err_deg_barf']:.3f} deg, trans x100 {m['trans_err_x100_barf']:.3f}")
         from warpnerf.geometry.cameras import describe_unconverged  # lazy: keeps --help fast (torch)
 
         stuck = describe_unconverged(m, max_ids=8)  # one view far off dominates the means: say so

@@ -11,7 +11,8 @@ the full-resolution image. Processing follows the original NeRF code:
    starts at depth 1.33, safely behind the NDC near plane at 1.0);
 4. recenter: express every pose in the frame of the "average pose" (mean centre, summed back
    and up axes), so the cameras look down -z around the origin;
-5. hold out every ``holdout``-th image (i % holdout == 0) as the test split.
+5. test views (``test``): every ``holdout``-th image (i % holdout == 0, NeRF's "llffhold"), or the
+   last 10 % by file name (BARF's and GARF's LLFF protocol: fern's images 18 and 19).
 
 The scene's ray space is LLFF's NDC (:meth:`RaySpace.ndc <warpnerf.geometry.rayspace.RaySpace.ndc>`,
 formula in :mod:`warpnerf.geometry.rayspace`, docs/design.md §6): world rays of the recentred scene are
@@ -34,6 +35,8 @@ from warpnerf.data.scene import Scene, Views
 from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 
 LLFF_BD_FACTOR = 0.75
+# which images are test views (load_llff's ``test``; config key llff_test)
+LLFF_TESTS = ("every8", "last10")
 
 
 def load_llff(
@@ -44,6 +47,7 @@ def load_llff(
     bd_factor: float = LLFF_BD_FACTOR,
     recenter: bool = True,
     name: str | None = None,
+    test: str = "every8",
 ) -> Scene:
     """Load an LLFF scene folder into a :class:`Scene` (source "dataset", kind "llff", NDC ray space).
 
@@ -56,6 +60,8 @@ def load_llff(
         recenter: express poses relative to the average pose (required for NDC to make sense;
             False only for inspecting the raw converted poses).
         name: scene name (default: the folder name).
+        test: "every8": every ``holdout``-th image is a test view (ids 0, holdout, ...; NeRF);
+            "last10": the last ``int(0.1 * N)`` images (at least one) by file name (BARF, GARF).
 
     Returns a scene whose ``train``/``test`` views hold (N, H, W, 3) images, OpenGL c2w, and
     ``val`` None, and an NDC ray space for the views' intrinsics (box around the training rays; module doc).
@@ -68,6 +74,8 @@ def load_llff(
         raise DatasetError(f"scene folder not found: {root}")
     if holdout < 1 or factor < 1 or downscale < 1:
         raise DatasetError(f"factor, holdout and downscale must be >= 1, got {factor}, {holdout}, {downscale}")
+    if test not in LLFF_TESTS:
+        raise DatasetError(f"test must be one of {', '.join(LLFF_TESTS)}, got {test!r}")
     pb_path = os.path.join(root, "poses_bounds.npy")
     try:
         pb = np.load(pb_path)
@@ -122,8 +130,11 @@ def load_llff(
     focal = hwf[2] * (w_img / hwf[1]) / downscale
 
     ids = np.arange(len(paths))
-    test_ids = ids[ids % holdout == 0]
-    train_ids = ids[ids % holdout != 0]
+    if test == "last10":  # _image_paths sorts by name, as BARF's loader does
+        is_test = ids >= len(ids) - max(int(0.1 * len(ids)), 1)
+    else:
+        is_test = ids % holdout == 0
+    test_ids, train_ids = ids[is_test], ids[~is_test]
     if len(train_ids) == 0:
         raise DatasetError(f"{root}: no training views left with holdout {holdout} and {len(ids)} images")
 

@@ -116,6 +116,7 @@ def load_scene(
     cache_dir: str | None = None,
     llff_factor: int = 8,
     llff_holdout: int = 8,
+    llff_test: str = "every8",
     progress: bool = True,
     allow_rgb: bool = False,
     unbounded: bool = False,
@@ -130,6 +131,8 @@ def load_scene(
         builtin_resolution, cache_dir, progress: built-in scenes only (image side in pixels,
             default warpnerf.data.builtin.DEFAULT_RESOLUTION; cache folder; tqdm bar).
         llff_factor: LLFF only (``images_<factor>``).
+        llff_test: LLFF only: "every8" (every ``llff_holdout``-th view) or "last10" (BARF's split;
+            :func:`~warpnerf.data.llff.load_llff`'s ``test``).
         llff_holdout: LLFF, COLMAP and transforms.json: every n-th view is a test view (unless
             the files name a split).
         unbounded: COLMAP and transforms.json: a 360° capture with a distant background, trained
@@ -155,7 +158,8 @@ def load_scene(
 
             return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
                                name=name, unbounded=unbounded)
-        return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name)
+        return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name,
+                         test=llff_test)
     if name in builtin_scenes():
         return load_builtin(
             name,

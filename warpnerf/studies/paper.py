@@ -11,6 +11,8 @@ steps on an RTX 4090; its pose noise is N(0, 0.15 I) on NeRF-synthetic, N(0, 0.0
 
 from __future__ import annotations
 
+from typing import Optional
+
 # Tab. 1 (camera pose optimisation). Per scene, in the paper's column order:
 # rotation error (deg):  NGP w/, NGP w/o, Mtrf w/, Mtrf w/o, BARF
 # translation err x100:  NGP w/, NGP w/o, Mtrf w/, Mtrf w/o, BARF
@@ -95,3 +97,10 @@ def paper_numbers(scene: str, task: str, model: str = "ngp") -> dict:
 def barf_numbers(scene: str, task: str) -> dict:
     """BARF's Tab. 1 metrics for ``scene`` (pose task only), or {}."""
     return BARF.get(scene.lower(), {}) if task == "pose" else {}
+
+
+def paper_key(key: str) -> Optional[str]:
+    """The key of the paper's figure that belongs beside our ``key``: the paper's rotation errors come from
+    BARF's evaluation code (float32, clamped), so they sit beside ``rot_err_deg_barf``, not beside our
+    unclamped ``rot_err_deg``."""
+    return {"rot_err_deg_barf": "rot_err_deg", "rot_err_deg": None}.get(key, key)

@@ -14,7 +14,7 @@ import statistics
 from typing import Optional
 
 from warpnerf.runs.record import ALONE_MAX_OTHER_CORES, DEFAULT_DIR, RecordError, load_records
-from warpnerf.studies.paper import barf_numbers, paper_numbers
+from warpnerf.studies.paper import barf_numbers, paper_key, paper_numbers
 from warpnerf.train import plots
 
 RESULTS_MD = os.path.join("docs", "results.md")
@@ -40,7 +40,8 @@ PAPER_REGIME = {
 }
 TASK_TITLES = {"pose": "Camera-pose optimisation beside the paper's Tab. 1",
                "fewshot": "Few-shot reconstruction beside the paper's Tab. 3"}
-_METRICS = {"pose": (("rot_err_deg", "rot. err (deg)", 3), ("trans_err_x100", "trans. err (x100)", 3),
+_METRICS = {"pose": (("rot_err_deg", "rot. err (deg)", 3), ("rot_err_deg_barf", "rot. err (deg, BARF's float32)", 3),
+                     ("trans_err_x100", "trans. err (x100)", 3),
                      ("psnr", "PSNR", 2)),
             "fewshot": (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3))}
 
@@ -172,12 +173,13 @@ def paper_table(task: str, rows: list[dict]) -> str:
         for key, _, digits in cols:
             for arm in ("w/", "w/o"):
                 cell = _mean_std([r["metrics"].get(key) for r in arms[arm]], digits)
-                if arm in paper and key in paper[arm]:
-                    cell += f" ({paper[arm][key]:.{digits}f})"
+                pkey = paper_key(key)
+                if arm in paper and pkey in paper[arm]:
+                    cell += f" ({paper[arm][pkey]:.{digits}f})"
                 cells.append(cell)
         if task == "pose":
             barf = barf_numbers(scene or "", task)
-            cells.append(" / ".join(_fmt(barf.get(k), d) for k, _, d in cols) if barf else "")
+            cells.append(" / ".join(_fmt(barf.get(k), d) for k, _, d in cols if k in barf) if barf else "")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + ("\n\nOurs, then the paper's figure in brackets; mean ± std where several seeds "
                                f"were recorded. Regimes differ: {PAPER_REGIME[task]}.")

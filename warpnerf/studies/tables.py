@@ -16,14 +16,15 @@ import statistics
 from typing import Optional
 
 from warpnerf.geometry.cameras import describe_unconverged
-from warpnerf.studies.paper import MIPNERF360, NERF_SYNTHETIC, barf_numbers, paper_numbers
+from warpnerf.studies.paper import MIPNERF360, NERF_SYNTHETIC, barf_numbers, paper_key, paper_numbers
 from warpnerf.train import plots
 
 TRANS_NOTE = ("translation error x100 is BARF's quantity: mean over views of 100 x |t_w2c(aligned) - t_w2c(gt)| "
               "after the Sim(3) alignment of camera centres (`trans_err_x100`), as in the paper")
 
 COLUMNS = {
-    "pose": [("rot_err_deg", "rot. err (deg)", "{:.3f}"), ("trans_err_x100", "trans. err (x100, BARF)", "{:.3f}"),
+    "pose": [("rot_err_deg", "rot. err (deg)", "{:.3f}"), ("rot_err_deg_barf", "rot. err (deg, BARF's float32)", "{:.3f}"),
+             ("trans_err_x100", "trans. err (x100, BARF)", "{:.3f}"),
              ("psnr", "PSNR", "{:.2f}")],
     "fewshot": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
     "full": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
@@ -77,12 +78,13 @@ def format_table(task: str, rows: dict, model: str = "ngp") -> str:
             for arm, _ in arm_cols:
                 ours = arms.get(arm, {}).get(key)
                 cell = "n/a" if ours is None else fmt.format(ours)
-                if arm in paper and key in paper[arm]:
-                    cell += f" ({fmt.format(paper[arm][key])})"
+                pkey = paper_key(key)
+                if arm in paper and pkey in paper[arm]:
+                    cell += f" ({fmt.format(paper[arm][pkey])})"
                 cells.append(cell)
         if task == "pose":
             barf = {} if builtin else barf_numbers(scene, task)
-            cells.append(" / ".join(fmt.format(barf[k]) for k, _, fmt in cols) if barf else "")
+            cells.append(" / ".join(fmt.format(barf[k]) for k, _, fmt in cols if k in barf) if barf else "")
         lines.append("| " + " | ".join(cells) + " |")
     if task == "pose":  # a view stuck far off dominates a mean: name it, with the medians
         for scene, arms in rows.items():

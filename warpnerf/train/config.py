@@ -48,6 +48,10 @@ LOG_MODES = ("none", "tensorboard")
 VIEW_SETS = ("fps", "random")
 SPLITS = ("test", "val")
 
+# where the pose task's training cameras start (tasks.PoseTask): the paper's perturbed ground truth, or
+# BARF's LLFF protocol, every camera at the scene's average pose
+POSE_INITS = ("noise", "identity")
+
 
 class Registry(Sequence):
     """The names of a registry that lives in a module too heavy to import for ``--help``.
@@ -146,6 +150,7 @@ class TrainConfig:
     n_views: int = 10  # fewshot: number of training views
     views: str = ""  # fewshot: explicit view list name ("freenerf8") or comma-separated ids (overrides view_set)
     view_set: str = "fps"  # fewshot: fps (farthest-point sampling of camera centres from view 0) | random (n_views drawn with seed)
+    pose_init: str = "noise"  # pose: noise (the ground truth perturbed by pose_noise: the paper) | identity (every training camera starts at the average pose: BARF's LLFF protocol; forward-facing scenes)
     pose_noise: Optional[float] = None  # pose: se(3) noise sigma (unset: 0.15 synthetic, 0.01 real)
     pose_noise_rot: Optional[float] = None  # pose: rotation sigma, overrides pose_noise
     pose_noise_trans: Optional[float] = None  # pose: translation sigma, overrides pose_noise
@@ -167,6 +172,7 @@ class TrainConfig:
     threads: Optional[int] = None  # CPU threads for Warp launches and torch ops (unset: $WARPNERF_THREADS or min(2, cores))
     log_every: int = 50  # steps between progress-bar metric refreshes
     allow_rgb: bool = False  # accept Blender-layout images without alpha (one warning line)
+    llff_test: str = "every8"  # LLFF scenes' test views: every8 (every 8th image, NeRF's) | last10 (the last 10 % by name, BARF's)
     # --- monitoring and metrics (warpnerf/train/monitor.py, warpnerf/train/metrics.py) ---
     log: str = "none"  # none | tensorboard: scalars to <run>/tb every log_every steps (pip install 'warpnerf[log]')
     heldout_every: int = 250  # steps between held-out PSNR renders (history "heldout"); 0 = off
@@ -194,6 +200,8 @@ CHOICES: dict[str, Sequence] = {
     "eval_split": SPLITS,
     "heldout_split": SPLITS,
     "log": LOG_MODES,
+    "pose_init": POSE_INITS,
+    "llff_test": Registry("warpnerf.data.llff", "LLFF_TESTS"),
 }
 
 
@@ -383,7 +391,7 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"iters must be >= 1, got {cfg.iters}")
     if cfg.batch_rays < 1 or cfg.target_samples < 1:
         raise ConfigError("batch_rays and target_samples must be >= 1")
-    for name in ("task", "model", "g2fr_mask", "g2fr_schedule", "view_set", "eval_split", "heldout_split", "log"):
+    for name in CHOICES:
         check_choice(name, getattr(cfg, name))
     if not 0.0 < cfg.g2fr_beta <= 1.0:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")

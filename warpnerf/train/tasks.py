@@ -17,7 +17,8 @@ import torch
 from tqdm.auto import tqdm
 
 from warpnerf.data.scene import Scene, Views
-from warpnerf.geometry.cameras import PoseCorrection, evaluate_poses, map_gt_poses_to_estimate_frame, perturb_poses
+from warpnerf.geometry.cameras import (PoseCorrection, barf_pose_errors, evaluate_poses, map_gt_poses_to_estimate_frame,
+                                       perturb_poses)
 from warpnerf.train import plots, reregister
 from warpnerf.train.config import ConfigError, TrainConfig, exp_decay
 from warpnerf.train.evaluate import refine_poses
@@ -133,6 +134,12 @@ class FewShotTask(Task):
 NOISE_SIGMA_SYNTHETIC = 0.15  # BARF's / the paper's pose noise on synthetic scenes (0.01 on real ones)
 
 
+def identity_poses(n: int, dtype: torch.dtype, device) -> torch.Tensor:
+    """(n, 3, 4) copies of [I | 0]: every camera at the origin looking down -z. In a recentred LLFF
+    scene that is the average pose, BARF's start on LLFF ("identity")."""
+    return torch.eye(3, 4, dtype=dtype, device=device).expand(n, 3, 4).clone()
+
+
 class PoseTask(Task):
     """Joint camera-pose optimisation from BARF-perturbed poses (DESIGN §5)."""
 
@@ -148,6 +155,14 @@ class PoseTask(Task):
         self.reregistered: list[dict] = []  # warpnerf.train.reregister's report, one dict per view searched for
         self.alignment = "centres"  # set from the scene in setup (alignment_for)
 
+    def train_views(self, scene: Scene) -> Views:
+        if self.cfg.pose_init == "identity" and not scene.ray_space.forward_facing:
+            # every camera at one pose sees the same image: only a forward-facing rig, whose cameras
+            # all look one way, can be registered from there (BARF does it on LLFF only)
+            raise ConfigError(f"pose_init identity starts every camera at the average pose, which only suits a "
+                              f"forward-facing (LLFF-layout) scene; '{scene.name}' is not one: use pose_init noise")
+        return scene.train
+
     def caveat(self, scene: Scene) -> Optional[str]:
         # measured on fern (docs/studies/2026-12-07-pose-forward-facing.md): Procrustes on nearly planar
         # camera centres turned the cameras by 6 deg
@@ -162,6 +177,14 @@ class PoseTask(Task):
         """How estimated poses are aligned to the ground truth (``cameras.evaluate_poses``' ``align``):
         BARF's centres, except on forward-facing scenes, whose centres leave the rotation ill-determined."""
         return "orientations" if scene.ray_space.forward_facing else "centres"
+
+    def _barf_means(self, c2w: torch.Tensor) -> dict:
+        """BARF's own figures (its evaluation code: centre alignment with its reflection fix, float32
+        arccos clamped at ~0.028 deg per view), beside ours in every pose table."""
+        with torch.no_grad():
+            barf = barf_pose_errors(c2w, self.gt_c2w)
+        return {"rot_err_deg_barf": barf["rot_err_deg_barf"], "trans_err_x100_barf": barf["trans_err_x100_barf"],
+                "rot_err_deg_barf_per_view": barf["rot_err_deg_barf_per_view"]}
 
     def evaluate(self) -> dict:
         """:func:`warpnerf.geometry.cameras.evaluate_poses` of the current training poses (no gradient)."""
@@ -183,16 +206,23 @@ class PoseTask(Task):
         # its own generator: the same seed gives the same noise with and without G²fR
         gen = torch.Generator().manual_seed(self.cfg.seed + 1)
         self.gt_c2w = gt.detach().clone()
-        self.noisy_c2w = perturb_poses(gt.cpu(), rot, trans, generator=gen).to(trainer.device)
+        if self.cfg.pose_init == "identity":
+            self.noisy_c2w = identity_poses(gt.shape[0], gt.dtype, trainer.device)
+            rot = trans = 0.0
+        else:
+            self.noisy_c2w = perturb_poses(gt.cpu(), rot, trans, generator=gen).to(trainer.device)
         self.sigmas = (rot, trans)
         self.correction = PoseCorrection(gt.shape[0]).to(trainer.device)
         # Adam moves each parameter by ~lr per step whatever the gradient's size, so a rate tuned for
         # sigma = 0.15 throws poses with sigma = 0.01 far off while the field is still blurry
-        # (garden, 3e-3: 0.94 deg at step 0, 5.4 deg at step 130); scale it with the noise
-        self.lr_scale = min(max(rot, trans) / NOISE_SIGMA_SYNTHETIC, 1.0) if self.cfg.pose_lr_by_noise else 1.0
+        # (garden, 3e-3: 0.94 deg at step 0, 5.4 deg at step 130); scale it with the noise. From the
+        # average pose the cameras start as far off as the rig is wide: BARF's rates, unscaled.
+        by_noise = self.cfg.pose_lr_by_noise and self.cfg.pose_init == "noise"
+        self.lr_scale = min(max(rot, trans) / NOISE_SIGMA_SYNTHETIC, 1.0) if by_noise else 1.0
         self.optimizer = torch.optim.Adam(self.correction.parameters(), lr=self.cfg.pose_lr * self.lr_scale)
         init = evaluate_poses(self.noisy_c2w, self.gt_c2w, self.alignment)
         self.initial = {k: init[k] for k in ("rot_err_deg", "trans_err_x100", "centre_err_x100", "rot_err_deg_unaligned")}
+        self.initial.update(self._barf_means(self.noisy_c2w))
         self._record(0)
 
     def state_dict(self) -> dict:
@@ -266,7 +296,7 @@ class PoseTask(Task):
         """Test poses mapped into the optimised frame by the training-camera Sim(3) alignment, then
         refined photometrically (``pose_refine_steps`` Adam steps per view, field frozen)."""
         ev = self.evaluate()
-        self.final = ev
+        self.final = {**ev, **self._barf_means(self.current_c2w())}
         # on forward-facing scenes the alignment's rotation is the orientations' (alignment_for): the
         # centres' was ill-determined, and test views mapped by it started 6 deg off (fern: 12.83 dB)
         mapped = map_gt_poses_to_estimate_frame(views.c2w.to(trainer.device).double(), ev["sim3"]).float()
@@ -290,6 +320,12 @@ class PoseTask(Task):
             "initial_rot_err_deg_unaligned": self.initial["rot_err_deg_unaligned"],
             "rot_offset_cam_deg": ev["rot_offset_cam_deg"],
             "trans_offset_cam_x100": ev["trans_offset_cam_x100"],
+            "rot_err_deg_barf": ev["rot_err_deg_barf"],
+            "trans_err_x100_barf": ev["trans_err_x100_barf"],
+            "rot_err_deg_barf_per_view": ev["rot_err_deg_barf_per_view"],
+            "initial_rot_err_deg_barf": self.initial["rot_err_deg_barf"],
+            "initial_trans_err_x100_barf": self.initial["trans_err_x100_barf"],
+            "pose_init": self.cfg.pose_init,
             "initial_rot_err_deg": self.initial["rot_err_deg"],
             "initial_trans_err_x100": self.initial["trans_err_x100"],
             "initial_centre_err_x100": self.initial["centre_err_x100"],
