@@ -12,16 +12,35 @@ where ``R`` turns the mean camera up axis (OpenGL +y, averaged over all views) o
 centres|``, so the cameras lie in [-1, 1]^3 with at least one on the boundary. The map is
 :class:`Normalization`; loaders compute it from all views (every split) before splitting.
 
+Object rigs without points (:func:`capture_normalization`): the cube around the cameras is
+mostly empty there (NeRF-synthetic's lego filled a sixth of each axis and trained to 16 dB
+instead of 30), so, like instant-ngp's colmap2nerf, the scene is centred on the point the
+cameras look at (:func:`warpnerf.geometry.rig.optical_focus`) instead, with the same ``R``, and
+scaled so that the cube of half-side 1 is the frustum intersection: the ball around the focus that
+every camera sees whole (radius ``distance * sin(narrowest half field of view)``, median over the
+cameras), padded by :data:`OBJECT_BOX_PAD`. NeRF-synthetic (cameras 4.03 from the centre, 40 deg
+field of view) gets its own box, [-1.5, 1.5]^3, as the unit cube. Points, forward-facing and 360°
+rigs, and unbounded scenes keep the camera normalisation.
+
 Bounds: ``near``/``far`` come from the depths of the sparse points seen by the cameras (robust
 percentiles), else from the camera spread; the box ``aabb`` from the points (robust bounding
-cube), else the cube of half-side ``aabb_scale`` (instant-ngp's key, default 1).
+cube), else the cube of half-side ``aabb_scale`` (instant-ngp's key, default 1: after the object
+framing that is instant-ngp's own unit box, 1.5 units around the look-at point of cameras 4 away).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from warpnerf.geometry.rig import classify_rig
+
+# Object framing: the box half-side over the radius every camera sees whole. 1.1 makes it NeRF-synthetic's
+# box exactly (1.1 * 4.031 * sin(0.3456) = 1.50) and leaves room for an object framed slightly off-centre.
+OBJECT_BOX_PAD = 1.1
+MIN_POINTS = 8  # fewer sparse points than this bound nothing (bounds_from_points falls back too)
 
 
 @dataclass
@@ -31,6 +50,8 @@ class Normalization:
     rotation: np.ndarray  # (3, 3)
     translation: np.ndarray  # (3,)
     scale: float
+    rig: str = ""  # "object", "forward_facing" or "360" (warpnerf.geometry.rig); "" when not classified
+    framing: str = ""  # one line: the rig and what the map does about it, for the run to print
 
     @staticmethod
     def identity() -> "Normalization":
@@ -87,6 +108,52 @@ def normalization_from_cameras(c2w: np.ndarray, orient: bool = True, center: boo
     return Normalization(rot, t, float(scale))
 
 
+def half_fov(width: float, height: float, fx: float, fy: float) -> float:
+    """Narrowest half field of view of a pinhole camera, radians: the half-angle of the cone inside its
+    frustum. The principal point is taken at the image centre (a calibrated one is within a few pixels)."""
+    return float(min(math.atan2(0.5 * width, fx), math.atan2(0.5 * height, fy)))
+
+
+def normalization_from_focus(c2w: np.ndarray, focus: np.ndarray, half_fovs) -> Normalization:
+    """The object framing (module docstring) of (N, 3, 4) OpenGL cameras converging on ``focus`` (3,).
+
+    ``half_fovs``: (N,) or one narrowest half field of view, radians (:func:`half_fov`).
+    """
+    c2w = np.asarray(c2w, np.float64)
+    focus = np.asarray(focus, np.float64)
+    rot = rotation_between(c2w[:, :, 1].mean(0), [0.0, 0.0, 1.0])
+    dist = np.linalg.norm(c2w[:, :, 3] - focus, axis=1)
+    seen = float(np.median(dist * np.sin(np.broadcast_to(np.asarray(half_fovs, np.float64), dist.shape))))
+    half = OBJECT_BOX_PAD * seen
+    if not half > 1e-12:
+        raise ValueError(f"no room around the focus: the cameras see a ball of radius {seen:.3g} around it")
+    return Normalization(rot, -rot @ focus, 1.0 / half)
+
+
+def capture_normalization(c2w: np.ndarray, points: np.ndarray | None, half_fovs,
+                          unbounded: bool = False) -> Normalization:
+    """The map of a capture, chosen from its rig (module docstring), with ``rig`` and ``framing`` filled in.
+
+    Args:
+        c2w: (N, 3, 4) OpenGL cameras of all views, capture frame (checked: finite rotations, not all
+            at one point).
+        points: (P, 3) sparse points or None; with :data:`MIN_POINTS` or more the points bound the scene.
+        half_fovs: (N,) or one narrowest half field of view, radians (:func:`half_fov`).
+        unbounded: the scene will be contracted around the cameras, which must then lie in [-1, 1]^3.
+    """
+    rig = classify_rig(c2w)
+    has_points = points is not None and len(points) >= MIN_POINTS
+    if rig.kind == "object" and not has_points and not unbounded:
+        norm = normalization_from_focus(c2w, rig.focus, half_fovs)
+        how = "centred on it, box = what every camera sees"
+    else:
+        norm = normalization_from_cameras(c2w)
+        how = ("cameras in [-1, 1]^3, contracted beyond" if unbounded else
+               "box from the sparse points" if has_points else "box = the cube around the cameras")
+    norm.rig, norm.framing = rig.kind, f"{rig.reason}; {how}"
+    return norm
+
+
 def bounds_from_points(c2w: np.ndarray, points: np.ndarray | None, aabb_scale: float | None = None):
     """(near, far, aabb) of a normalised scene.
 
@@ -103,7 +170,7 @@ def bounds_from_points(c2w: np.ndarray, points: np.ndarray | None, aabb_scale: f
     """
     half = float(aabb_scale) if aabb_scale else 1.0
     c2w = np.asarray(c2w, np.float64)
-    if points is not None and len(points) >= 8:
+    if points is not None and len(points) >= MIN_POINTS:
         pts = np.asarray(points, np.float64)
         rel = pts[None, :, :] - c2w[:, None, :, 3]  # (N, P, 3)
         z = -np.einsum("npk,nk->np", rel, c2w[:, :, 2])  # depth along -z (OpenGL looks down -z)

@@ -229,6 +229,9 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "
           f"G2fR {'on' if cfg.g2fr else 'off'}; device {device}; threads {devmod.num_threads()}; run folder {out_dir}"
           + (f"; resumed at step {trainer.step}" if mode == "resume" else ""))
+    framing = getattr(getattr(scene, "normalization", None), "framing", "")
+    if framing:  # a capture's world was mapped from its rig: say how (warpnerf.data.normalize)
+        print(f"framing: {framing}")
     print(after_training_line(cfg, eval_view_count(trainer)))
     if progress:
         print(progress_legend(cfg))
