@@ -241,3 +241,17 @@ def test_record_command_records_finished_runs_with_their_own_provenance(tmp_path
     no_cpu = _run_folder(tmp_path / "old", _fewshot_metrics(0, "none", 20.0), 'task = "fewshot"\n')
     assert main(["record", "old", no_cpu, "--records-dir", str(recs)]) == 0
     assert R.load_record(str(recs / "old.json"))["cpu"]["alone"] is None  # not measured: unknown, not "alone"
+
+
+def test_pose_table_keeps_starts_and_records_apart(tmp_path):
+    """An identity start (BARF's LLFF protocol) is another regime than noise: its runs get their own row."""
+    noisy = _pose_metrics(0, True, 0.3, 0.4, 23.0, scene="fern")
+    identity = {**_pose_metrics(0, True, 2.5, 2.8, 20.0, scene="fern"), "pose_init": "identity"}
+    runs = [R.read_run_files(_run_folder(tmp_path / f"r{i}", m, 'task = "pose"\n'))
+            for i, m in enumerate([noisy, identity])]
+    _record(tmp_path, "fern", runs)
+    rows = report.recorded_runs(R.load_records(str(tmp_path / "docs" / "results")))
+    fern = [line for line in report.paper_table("pose", rows).splitlines() if line.startswith("| fern")]
+    assert len(fern) == 2
+    assert sum("start identity" in line and "| 2.500 |" in line for line in fern) == 1
+    assert sum("start identity" not in line and "| 0.300 |" in line for line in fern) == 1

@@ -159,16 +159,23 @@ def paper_table(task: str, rows: list[dict]) -> str:
     groups: dict = {}
     for r in ours:
         m = r["metrics"]
-        key = (m.get("scene"), m.get("model", "ngp"), m.get("iters"))
+        # a record is one set of settings; the pose start (noise or identity) is part of the regime
+        key = (m.get("scene"), m.get("model", "ngp"), m.get("iters"), r["record"],
+               m.get("pose_init") or r["config"].get("pose_init") or "noise")
         groups.setdefault(key, {"w/": [], "w/o": []})["w/" if m.get("g2fr") else "w/o"].append(r)
-    for (scene, model, iters), arms in sorted(groups.items(), key=lambda kv: tuple(str(x) for x in kv[0])):
+    for (scene, model, iters, record_name, start), arms in sorted(groups.items(),
+                                                                   key=lambda kv: tuple(str(x) for x in kv[0])):
         paper = paper_numbers(scene or "", task, model)
         seeds = sorted({r["metrics"].get("seed") for arm in arms.values() for r in arm}, key=str)
-        noise = next((r["config"].get("pose_noise") for arm in arms.values() for r in arm), None)
+        noise = next((r["metrics"].get("pose_noise_rot", r["config"].get("pose_noise")) for arm in arms.values()
+                      for r in arm), None)  # the sigma applied (metrics), else the one asked for
         views = next((r["metrics"].get("n_train_views") for arm in arms.values() for r in arm), None)
         regime = f"{iters} iters, {views} views, seed{'s' if len(seeds) > 1 else ''} {','.join(map(str, seeds))}"
-        if task == "pose" and noise is not None:
+        if task == "pose" and start == "identity":
+            regime += ", start identity (BARF's LLFF)"
+        elif task == "pose" and noise is not None:
             regime += f", noise {noise}"
+        regime += f", record {record_name}"
         cells = [str(scene), str(model), regime]
         for key, _, digits in cols:
             for arm in ("w/", "w/o"):
