@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from trainer_helpers import short_run_psnr
 from warpnerf.data import builtin, load_blender
 from warpnerf.data import colmap as cm
 from warpnerf.data.colmap import load_colmap
@@ -192,28 +193,6 @@ def test_every_eighth_image_is_test_without_split_lists(exported, tmp_path):
 
 # ---- training: same views, same rays => the same PSNR -------------------------------------------
 
-TRAIN = dict(levels=8, log2_table_size=14, base_resolution=8, max_resolution=128, hidden=32, target_samples=8192,
-             batch_rays=512, occ_resolution=32, occ_warmup=16, occ_update_every=8, log_every=20, lr=2e-2,
-             video_frames=0, iters=40, seed=0)
-
-
-def train_psnr(scene):
-    from warpnerf import device
-    from warpnerf.train.config import build_config
-    from warpnerf.train.evaluate import evaluate
-    from warpnerf.train.tasks import make_task
-    from warpnerf.train.trainer import Trainer
-
-    before = device.num_threads()
-    device.set_num_threads(1)  # fixed thread count: identical float reductions in both runs
-    try:
-        cfg = build_config("full", overrides=TRAIN)
-        trainer = Trainer(cfg, scene, make_task(cfg), "cpu")
-        trainer.fit(progress=False)
-        return evaluate(trainer, None, progress=False)["psnr"]
-    finally:
-        device.set_num_threads(before)
-
 
 def test_short_training_matches_the_blender_load(exported):
     blender = load_blender(exported["blender"])
@@ -221,11 +200,11 @@ def test_short_training_matches_the_blender_load(exported):
     refs = {}  # the Blender load in each capture's frame and box: the COLMAP layouts share theirs
     for kind in ("colmap", "transforms"):
         ref_scene, _ = normalized_blender(blender, scenes["colmap-binary" if kind == "colmap" else "transforms"])
-        refs[kind] = (ref_scene, train_psnr(ref_scene))
+        refs[kind] = (ref_scene, short_run_psnr(ref_scene))
     for layout, scene in scenes.items():
         ref_scene, ref = refs[scene.kind]
         scene = dataclasses.replace(scene, ray_space=ref_scene.ray_space)
-        psnr = train_psnr(scene)
+        psnr = short_run_psnr(scene)
         print(layout, psnr, ref)
         # the exact check of the loaders' poses is test_capture_layout_gives_the_blender_rays (every ray to 1e-5);
         # here 40 steps at lr 2e-2 amplify their one-ulp difference (6e-8): 0.19 dB on one VM (2026-12-05), < 0.1
