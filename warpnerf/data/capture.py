@@ -16,7 +16,8 @@ import torch
 from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_pinhole, shared_pinhole
 from warpnerf.data.errors import DatasetError, check_camera_spread, check_intrinsics
 from warpnerf.data.images import area_downscale, load_parallel, read_image
-from warpnerf.data.normalize import Normalization, bounds_from_points, every_nth_split, normalization_from_cameras
+from warpnerf.data.normalize import Normalization, bounds_from_points, capture_normalization, every_nth_split, half_fov
+from warpnerf.geometry.rig import classify_rig
 from warpnerf.data.scene import Scene, Views
 from warpnerf.geometry.rayspace import RaySpace
 
@@ -101,12 +102,15 @@ def build_scene(
         white_background: composite images with alpha on white (else black); also the renderer's
             background.
         aabb_scale: fallback box half-side when there are no points (see normalize).
-        normalize: apply :func:`normalization_from_cameras` (False keeps the capture frame).
+        normalize: map the world by :func:`~warpnerf.data.normalize.capture_normalization` (an object rig
+            without points is centred on the point its cameras look at); False keeps the capture frame
+            (the rig is still classified).
         unbounded: a 360° capture with a distant background: a contracted ray space
             (:mod:`warpnerf.geometry.rayspace`) around the normalised cameras, which lie in
             [-1, 1]^3, instead of a box; near from the points/cameras as for a box, far 1000.
 
-    The applied map is returned in ``scene.normalization`` (a :class:`Normalization`).
+    The applied map is returned in ``scene.normalization`` (a :class:`Normalization`, whose ``framing``
+    says which framing the rig got and why).
     """
     check_frames(frames, source)
     for fr in frames:  # COLMAP and transforms.json alike: a zero or NaN focal length is no camera
@@ -116,7 +120,12 @@ def build_scene(
     if not isinstance(downscale, int) or downscale < 1:
         raise DatasetError(f"downscale must be a positive integer, got {downscale!r}")
     c2w = np.stack([fr.c2w for fr in frames])
-    norm = normalization_from_cameras(c2w) if normalize else Normalization.identity()
+    if normalize:  # the framing depends on the rig and the fields of view (warpnerf.data.normalize)
+        fovs = [half_fov(fr.camera.width, fr.camera.height, fr.camera.fx, fr.camera.fy) for fr in frames]
+        norm = capture_normalization(c2w, points, fovs, unbounded)
+    else:
+        rig = classify_rig(c2w)
+        norm = Normalization(np.eye(3), np.zeros(3), 1.0, rig.kind, f"{rig.reason}; capture frame kept")
     c2w_n = norm.c2w(c2w)
     pts_n = norm.points(points) if points is not None and len(points) else None
 

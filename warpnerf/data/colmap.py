@@ -15,24 +15,21 @@ distorted or differing cameras are resampled to one pinhole camera at load time
 (:mod:`warpnerf.data.distortion`). Poses are world-to-camera (quaternion w, x, y, z and translation)
 in OpenCV axes (x right, y down, z forward) and become OpenGL camera-to-world matrices, then the
 world is normalised as documented in :mod:`warpnerf.data.normalize`: a model without points from an
-object rig is centred on the point its cameras look at (:func:`frame_capture`).
+object rig is centred on the point its cameras look at (:func:`warpnerf.data.capture.build_scene`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from warpnerf.data.capture import Frame, build_scene, check_frames
+from warpnerf.data.capture import Frame, build_scene
 from warpnerf.data.distortion import Intrinsics
-from warpnerf.data.errors import DatasetError, check_camera_spread, check_intrinsics
-from warpnerf.data.normalize import Normalization, capture_normalization, half_fov
+from warpnerf.data.errors import DatasetError
 from warpnerf.data.scene import Scene
-from warpnerf.geometry.rig import classify_rig
 
 # name -> (COLMAP model id, number of parameters); every model COLMAP defines, so binary files of
 # any model parse, and unsupported ones get a clear error instead of garbage.
@@ -438,31 +435,6 @@ def read_split_lists(root: str) -> dict[str, list[str]] | None:
     return out
 
 
-def frame_capture(frames: list[Frame], points: np.ndarray | None, source: str, normalize: bool = True,
-                  unbounded: bool = False) -> tuple[list[Frame], np.ndarray | None, Normalization]:
-    """(frames, points, map): the capture mapped by :func:`warpnerf.data.normalize.capture_normalization`.
-
-    For both capture loaders (COLMAP, transforms.json): the map depends on the rig and the intrinsics,
-    which :func:`build_scene` does not see, so it is applied here and ``build_scene`` gets
-    ``normalize=False``. ``normalize=False`` keeps the capture frame (the rig is still classified).
-    Raises DatasetError naming ``source`` for poses the map cannot use (as ``build_scene`` would).
-    """
-    # build_scene's checks, first: the map reads the poses and fields of view and divides by the camera spread
-    check_frames(frames, source)
-    for fr in frames:
-        k = fr.camera
-        check_intrinsics(f"{source} (image {fr.name})", k.width, k.height, k.fx, k.fy, k.cx, k.cy)
-    c2w = np.stack([fr.c2w for fr in frames])
-    check_camera_spread(source, c2w[:, :, 3])
-    if not normalize:
-        rig = classify_rig(c2w)
-        return frames, points, Normalization(np.eye(3), np.zeros(3), 1.0, rig.kind, f"{rig.reason}; capture frame kept")
-    fovs = [half_fov(fr.camera.width, fr.camera.height, fr.camera.fx, fr.camera.fy) for fr in frames]
-    norm = capture_normalization(c2w, points, fovs, unbounded)
-    frames = [dataclasses.replace(fr, c2w=m) for fr, m in zip(frames, norm.c2w(c2w))]
-    return frames, (norm.points(points) if points is not None and len(points) else points), norm
-
-
 def load_colmap(
     root: str,
     downscale: int = 1,
@@ -522,9 +494,6 @@ def load_colmap(
     points = np.stack([p.xyz for p in pts.values()]) if pts else None
     if points is not None:
         points = points[np.all(np.isfinite(points), axis=1)]
-    frames, points, norm = frame_capture(frames, points, images_path, normalize, unbounded)
-    scene = build_scene(frames, points, root, "colmap", images_path, name=name, split_lists=read_split_lists(root),
-                        holdout=holdout, downscale=downscale, white_background=white_background, normalize=False,
-                        unbounded=unbounded)
-    scene.normalization = norm
-    return scene
+    return build_scene(frames, points, root, "colmap", images_path, name=name, split_lists=read_split_lists(root),
+                       holdout=holdout, downscale=downscale, white_background=white_background, normalize=normalize,
+                       unbounded=unbounded)

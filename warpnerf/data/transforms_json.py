@@ -15,7 +15,7 @@
 Per-frame intrinsics override the top-level ones. Images are resampled to one shared pinhole
 camera (:mod:`warpnerf.data.distortion`), the world is normalised as documented in
 :mod:`warpnerf.data.normalize` (there are no points, so an object rig is centred on the point its
-cameras look at: :func:`warpnerf.data.colmap.frame_capture`), and without split lists every 8th image
+cameras look at: :func:`warpnerf.data.capture.build_scene`), and without split lists every 8th image
 (sorted by path) is a test view. The folder must not also hold ``transforms_train.json`` (that is the Blender layout).
 """
 
@@ -27,7 +27,6 @@ import os
 import numpy as np
 
 from warpnerf.data.capture import Frame, build_scene
-from warpnerf.data.colmap import frame_capture
 from warpnerf.data.distortion import Intrinsics
 from warpnerf.data.errors import DatasetError, check_frames, json_number, read_json_object
 from warpnerf.data.images import IMAGE_SUFFIXES, read_image
@@ -129,10 +128,7 @@ def load_transforms_json(
     aabb_scale = meta.get("aabb_scale")
     if aabb_scale not in (None, 0):  # 0: unset, as before
         aabb_scale = json_number(path, "aabb_scale", aabb_scale, positive=True)
-    frames, _, norm = frame_capture(frames, None, path, normalize, unbounded)
-    scene = build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
-                        downscale=downscale, white_background=white_background,
-                        aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=False,
-                        unbounded=unbounded)
-    scene.normalization = norm
-    return scene
+    return build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
+                       downscale=downscale, white_background=white_background,
+                       aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize,
+                       unbounded=unbounded)
