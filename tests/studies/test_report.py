@@ -172,6 +172,33 @@ def test_fewshot_table_pairs_arms_by_seed_and_keeps_val_runs_out(tmp_path):
     assert std[-1] == pytest.approx(statistics.stdev(base))
 
 
+def test_an_arm_recorded_later_pairs_with_its_base_records_baseline(tmp_path):
+    """``warpnerf record NAME DIRS --pairs-with BASE``: an adaptive arm run after a finished table joins
+    that table's rows and is paired, seed by seed, with BASE's baseline; a different regime does not pair."""
+    config = 'task = "fewshot"\nlog2_table_size = 19\nrandom_background = false\nlr_final_ratio = 1.0\n'
+    base = {("fixed", 0): 24.0, ("fixed", 1): 23.0, ("none", 0): 22.0, ("none", 1): 23.5}
+    _record(tmp_path, "tab3", [R.read_run_files(_run_folder(tmp_path / f"{a}{s}", _fewshot_metrics(s, a, v), config))
+                               for (a, s), v in base.items()])
+    later = {0: 22.5, 1: 23.0}
+    runs = [R.read_run_files(_run_folder(tmp_path / f"ad{s}", _fewshot_metrics(s, "adaptive", v), config))
+            for s, v in later.items()]
+    other = 'task = "fewshot"\nlog2_table_size = 17\nrandom_background = false\nlr_final_ratio = 1.0\n'
+    runs.append(R.read_run_files(_run_folder(tmp_path / "ad17", _fewshot_metrics(0, "adaptive", 30.0), other)))
+    R.write_record(R.record_path("tab3_adaptive", str(tmp_path / "docs" / "results")),
+                   R.build_record("tab3_adaptive", "runs", ["record"], runs, {}, extra={"pairs_with": "tab3"}))
+    rows = report.recorded_runs(R.load_records(str(tmp_path / "docs" / "results")))
+    text = report.fewshot_table(rows)
+    lines = [line for line in text.splitlines() if "| lego |" in line]
+    assert len(lines) == 2  # the 2^19 rows joined; the 2^17 adaptive run stands alone, unpaired
+    joined = next(line for line in lines if "2^19" in line)
+    cells = [c.strip() for c in joined.strip("|").split("|")]
+    assert cells[0] == "tab3 + tab3_adaptive"
+    gaps = [later[s] - base[("none", s)] for s in (0, 1)]  # +0.5, -0.5
+    assert f"{statistics.fmean(gaps):+.2f} ± {statistics.stdev(gaps):.2f} (1/2 ≥ 0)" in cells
+    alone = next(line for line in lines if "2^17" in line)
+    assert "n/a" in alone and "tab3_adaptive" in alone
+
+
 def test_report_writes_and_check_catches_a_hand_edit(tmp_path, capsys):
     runs = [R.read_run_files(_run_folder(tmp_path / "main", {**_pose_metrics(0, True, 0.1, 0.1, 23.08),
                                                                "task": "fewshot", "scene": "chair"}, 'task = "fewshot"\n'))]
@@ -241,6 +268,11 @@ def test_record_command_records_finished_runs_with_their_own_provenance(tmp_path
     no_cpu = _run_folder(tmp_path / "old", _fewshot_metrics(0, "none", 20.0), 'task = "fewshot"\n')
     assert main(["record", "old", no_cpu, "--records-dir", str(recs)]) == 0
     assert R.load_record(str(recs / "old.json"))["cpu"]["alone"] is None  # not measured: unknown, not "alone"
+    # --pairs-with names the record whose baseline the new arm pairs with: it must exist
+    assert main(["record", "later", no_cpu, "--records-dir", str(recs), "--pairs-with", "nosuch"]) == 2
+    assert not (recs / "later.json").exists()
+    assert main(["record", "later", no_cpu, "--records-dir", str(recs), "--pairs-with", "pilot"]) == 0
+    assert R.load_record(str(recs / "later.json"))["pairs_with"] == "pilot"
 
 
 def test_pose_table_keeps_starts_and_records_apart(tmp_path):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 from collections.abc import Callable
@@ -84,9 +85,15 @@ def _table_record_dirs(results: list) -> tuple[list[str], dict]:
 def cmd_record(args) -> int:
     """``warpnerf record NAME RUN_DIR...``: a record of run folders that finished without ``--record``."""
     path = record.check_new_record(args.record, args.records_dir, replace=args.record_replace)
+    extra = {}
+    if args.pairs_with:  # an arm run after the table it joins: its runs pair with that record's baseline
+        base = record.record_path(args.pairs_with, args.records_dir)
+        if not os.path.isfile(base):
+            raise record.RecordError(f"--pairs-with {args.pairs_with}: no record {base}")
+        extra["pairs_with"] = args.pairs_with
     runs = [record.read_run_files(d) for d in args.runs]
     rec = record.build_record(args.record, "runs", args.argv, runs, record.cpu_of_runs(runs),
-                              extra={"run_code": [r["metrics"].get("code") for r in runs]})
+                              extra={"run_code": [r["metrics"].get("code") for r in runs], **extra})
     record.write_record(path, rec)
     print(f"record: {path} ({len(runs)} run{'s' if len(runs) != 1 else ''}; commit and CPU share as each run measured)")
     return 0
@@ -281,6 +288,8 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
     rc.add_argument("runs", nargs="+", metavar="RUN_DIR", help="finished run folders (metrics.json and config.toml)")
     rc.add_argument("--records-dir", default=None, help="folder of the records (default docs/results)")
     rc.add_argument("--record-replace", action="store_true", help="replace an existing record of that name")
+    rc.add_argument("--pairs-with", metavar="BASE", default=None,
+                    help="an arm run after record BASE's table: pair its runs with BASE's baseline (same regime)")
     rc.set_defaults(func=cmd_record)
 
     sc = sub.add_parser("scenes", help="list built-in scenes and dataset scenes found under --data-root")

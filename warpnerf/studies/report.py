@@ -59,7 +59,8 @@ def recorded_runs(records: list[dict]) -> list[dict]:
             inherited = {"commit": None, "dirty": None} if rec["kind"] == "runs" else \
                 {"commit": rec.get("commit"), "dirty": rec.get("dirty")}
             code = run["metrics"].get("code") or inherited
-            rows.append({"record": rec["name"], "kind": rec["kind"], "command": rec["command"],
+            rows.append({"record": rec["name"], "pairs_with": rec.get("pairs_with"), "kind": rec["kind"],
+                         "command": rec["command"],
                          "commit": code.get("commit"), "dirty": code.get("dirty"), "date": rec["date"],
                          "machine": rec["machine"], "cpu": run["metrics"].get("cpu") or rec["cpu"],
                          "metrics": run["metrics"], "config": run["config"], "run": run.get("run")})
@@ -228,13 +229,15 @@ def regime_of(row: dict) -> str:
 
 def fewshot_groups(rows: list[dict], split: Optional[str] = "test") -> dict:
     """(record, scene, view set, regime, scene source, split) -> {arm: {seed: row}} for the few-shot runs whose
-    final metrics were measured on ``split`` (None: any split)."""
+    final metrics were measured on ``split`` (None: any split). A record made with ``--pairs-with BASE``
+    (an arm added later to a finished table) joins BASE's groups, so its arm is paired with BASE's baseline
+    where the regime is the same; the record cell then names both."""
     groups: dict = {}
     for r in rows:
         m = r["metrics"]
         if m.get("task") != "fewshot" or (split is not None and m.get("eval_split", "test") != split):
             continue
-        key = (r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"),
+        key = (r.get("pairs_with") or r["record"], m.get("scene"), m.get("view_set") or "fps", regime_of(r), m.get("scene_source"),
                m.get("eval_split", "test"))
         groups.setdefault(key, {}).setdefault(arm_of(m, r["config"]), {})[m.get("seed")] = r
     return groups
@@ -268,7 +271,8 @@ def fewshot_table(rows: list[dict]) -> str:
         base = by_arm.get("none", {})
         epochs = _mean_std([r["metrics"].get("epochs") for r in base.values()], 1)
         name = f"{scene} (built-in procedural, not NeRF-synthetic {scene})" if builtin else str(scene)
-        cells = [record, name, view_set, regime, ",".join(map(str, seeds)), epochs]
+        names = sorted({r["record"] for arm in by_arm.values() for r in arm.values()}, key=lambda n: (n != record, n))
+        cells = [" + ".join(names), name, view_set, regime, ",".join(map(str, seeds)), epochs]
         for key, digits in (("psnr", 2), ("ssim", 3)):
             for a in arms:
                 cell = _mean_std([r["metrics"].get(key) for r in by_arm.get(a, {}).values()], digits)
