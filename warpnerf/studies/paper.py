@@ -13,6 +13,16 @@ from __future__ import annotations
 
 from typing import Optional
 
+# The columns of every table of our results beside the paper's (``warpnerf table`` and ``warpnerf report``):
+# (metrics.json key, label, decimals). Rotation twice: ours (unclamped) and BARF's float32 one, which is the
+# quantity the paper's figures are (``cameras.barf_pose_errors``).
+METRIC_COLUMNS: dict[str, tuple[tuple[str, str, int], ...]] = {
+    "pose": (("rot_err_deg", "rot. err (deg)", 3), ("rot_err_deg_barf", "rot. err (deg, BARF's float32)", 3),
+             ("trans_err_x100", "trans. err (x100, BARF)", 3), ("psnr", "PSNR", 2)),
+    "fewshot": (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)),
+    "full": (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)),
+}
+
 # Tab. 1 (camera pose optimisation). Per scene, in the paper's column order:
 # rotation error (deg):  NGP w/, NGP w/o, Mtrf w/, Mtrf w/o, BARF
 # translation err x100:  NGP w/, NGP w/o, Mtrf w/, Mtrf w/o, BARF

@@ -14,7 +14,7 @@ import statistics
 from typing import Optional
 
 from warpnerf.runs.record import ALONE_MAX_OTHER_CORES, DEFAULT_DIR, RecordError, load_records
-from warpnerf.studies.paper import barf_numbers, paper_key, paper_numbers
+from warpnerf.studies.paper import METRIC_COLUMNS, barf_numbers, paper_key, paper_numbers
 from warpnerf.train import plots
 
 RESULTS_MD = os.path.join("docs", "results.md")
@@ -40,11 +40,6 @@ PAPER_REGIME = {
 }
 TASK_TITLES = {"pose": "Camera-pose optimisation beside the paper's Tab. 1",
                "fewshot": "Few-shot reconstruction beside the paper's Tab. 3"}
-_METRICS = {"pose": (("rot_err_deg", "rot. err (deg)", 3), ("rot_err_deg_barf", "rot. err (deg, BARF's float32)", 3),
-                     ("trans_err_x100", "trans. err (x100)", 3),
-                     ("psnr", "PSNR", 2)),
-            "fewshot": (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3))}
-
 
 # --- flattening records ---------------------------------------------------------------------------
 
@@ -150,7 +145,7 @@ def paper_table(task: str, rows: list[dict]) -> str:
     ours = [r for r in rows if r["metrics"].get("task") == task and r["metrics"].get("scene_source") != "builtin"]
     if not ours:
         return "No record yet."
-    cols = _METRICS[task]
+    cols = METRIC_COLUMNS[task]
     head = ["scene", "model", "regime (ours)"]
     for _, label, _ in cols:
         head += [f"{label} w/ G2fR", f"{label} w/o"]

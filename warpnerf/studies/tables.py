@@ -16,19 +16,15 @@ import statistics
 from typing import Optional
 
 from warpnerf.geometry.cameras import describe_unconverged
-from warpnerf.studies.paper import MIPNERF360, NERF_SYNTHETIC, barf_numbers, paper_key, paper_numbers
+from warpnerf.studies.paper import METRIC_COLUMNS, MIPNERF360, NERF_SYNTHETIC, barf_numbers, paper_key, paper_numbers
 from warpnerf.train import plots
 
 TRANS_NOTE = ("translation error x100 is BARF's quantity: mean over views of 100 x |t_w2c(aligned) - t_w2c(gt)| "
               "after the Sim(3) alignment of camera centres (`trans_err_x100`), as in the paper")
 
-COLUMNS = {
-    "pose": [("rot_err_deg", "rot. err (deg)", "{:.3f}"), ("rot_err_deg_barf", "rot. err (deg, BARF's float32)", "{:.3f}"),
-             ("trans_err_x100", "trans. err (x100, BARF)", "{:.3f}"),
-             ("psnr", "PSNR", "{:.2f}")],
-    "fewshot": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
-    "full": [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "LPIPS", "{:.3f}")],
-}
+# (metrics key, label, format) of each task's columns: the one definition in paper.py, as format strings
+COLUMNS = {task: [(key, label, f"{{:.{digits}f}}") for key, label, digits in cols]
+           for task, cols in METRIC_COLUMNS.items()}
 TITLES = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)", "fewshot": "Few-shot reconstruction (cf. paper Tab. 3)",
           "full": "Full reconstruction"}
 MODEL_NAMES = {"ngp": "NGP (hash grid)", "mtrf": "Mtrf (multi-resolution CP)"}
