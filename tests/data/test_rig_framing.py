@@ -1,6 +1,6 @@
 """Captures without sparse points framed from their rig: an object rig is centred on the point its cameras
 look at with a box the object fills (it used to fill a sixth of each axis: lego trained to 16 dB, not 30),
-while captures with points, and forward-facing rigs, keep the camera normalisation."""
+while captures with points, and forward-facing rigs in a box, keep the camera normalisation."""
 
 import json
 import math
@@ -109,7 +109,8 @@ def test_points_and_forward_facing_rigs_keep_the_camera_normalisation(tmp_path):
     xs, ys = np.meshgrid(np.linspace(-1, 1, 4), np.linspace(-0.5, 0.5, 3))
     eyes = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], -1)
     ff = to_world(builtin.look_at(eyes, target=(0.0, 0.0, -12.0), up=(0.0, 1.0, 0.0)).astype(np.float64))
-    scene = load_transforms_json(write_capture(str(tmp_path / "ff"), ff, layout="transforms"))
+    # a forward-facing rig in a box (--no-ndc; by default it trains in NDC: tests/data/test_capture_ray_space.py)
+    scene = load_transforms_json(write_capture(str(tmp_path / "ff"), ff, layout="transforms"), ndc=False)
     assert scene.normalization.rig == "forward_facing", scene.normalization.framing
     np.testing.assert_allclose(scene.normalization.matrix(), normalization_from_cameras(ff).matrix(), atol=1e-12)
     assert scene.aabb == (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)

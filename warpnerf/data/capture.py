@@ -19,7 +19,7 @@ from warpnerf.data.images import area_downscale, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, capture_normalization, every_nth_split, half_fov
 from warpnerf.geometry.rig import classify_rig
 from warpnerf.data.scene import Scene, Views
-from warpnerf.geometry.rayspace import RaySpace
+from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 
 
 @dataclass
@@ -88,7 +88,8 @@ def build_scene(
     white_background: bool = True,
     aabb_scale: float | None = None,
     normalize: bool = True,
-    unbounded: bool = False,
+    unbounded: bool | None = None,
+    ndc: bool | None = None,
 ) -> Scene:
     """Assemble a Scene (source "dataset") from registered frames.
 
@@ -108,9 +109,13 @@ def build_scene(
         unbounded: a 360° capture with a distant background: a contracted ray space
             (:mod:`warpnerf.geometry.rayspace`) around the normalised cameras, which lie in
             [-1, 1]^3, instead of a box; near from the points/cameras as for a box, far 1000.
+            None: chosen from the rig (360° rigs; :func:`~warpnerf.data.normalize.choose_ray_space`).
+        ndc: LLFF's NDC ray space (the world mapped as the LLFF loader maps it); None: chosen from the
+            rig (forward-facing rigs). Without ``normalize`` the capture frame is kept and the ray space is
+            a box, or contracted when ``unbounded`` is True.
 
     The applied map is returned in ``scene.normalization`` (a :class:`Normalization`, whose ``framing``
-    says which framing the rig got and why).
+    says which framing and ray space the rig got and why).
     """
     check_frames(frames, source)
     for fr in frames:  # COLMAP and transforms.json alike: a zero or NaN focal length is no camera
@@ -122,10 +127,14 @@ def build_scene(
     c2w = np.stack([fr.c2w for fr in frames])
     if normalize:  # the framing depends on the rig and the fields of view (warpnerf.data.normalize)
         fovs = [half_fov(fr.camera.width, fr.camera.height, fr.camera.fx, fr.camera.fy) for fr in frames]
-        norm = capture_normalization(c2w, points, fovs, unbounded)
+        try:
+            norm = capture_normalization(c2w, points, fovs, unbounded, ndc)
+        except ValueError as e:  # --unbounded with --ndc
+            raise DatasetError(f"{source}: {e}") from None
     else:
         rig = classify_rig(c2w)
-        norm = Normalization(np.eye(3), np.zeros(3), 1.0, rig.kind, f"{rig.reason}; capture frame kept")
+        norm = Normalization(np.eye(3), np.zeros(3), 1.0, rig.kind, f"{rig.reason}; capture frame kept",
+                             "contracted" if unbounded else "box")
     c2w_n = norm.c2w(c2w)
     pts_n = norm.points(points) if points is not None and len(points) else None
 
@@ -159,6 +168,14 @@ def build_scene(
     names = [fr.name for fr in frames]
     splits = resolve_split(names, split_lists, holdout, source)
     near, far, aabb = bounds_from_points(c2w_n[splits["train"]], pts_n, aabb_scale)
+    if norm.ray_space == "ndc":  # as the LLFF loader: the box holds every training ray from the near plane at depth 1
+        focal = f0 / downscale
+        ray_space = RaySpace.ndc(focal, w, h, ndc_near=1.0,
+                                 extent=ndc_extent(c2w_n[splits["train"]], focal, w, h, near=1.0))
+    elif norm.ray_space == "contracted":
+        ray_space = RaySpace.contracted(near)
+    else:
+        ray_space = RaySpace.euclidean(aabb, near, far)
 
     def views(sel: list[int]) -> Views:
         sel_t = torch.as_tensor(sel, dtype=torch.long)
@@ -179,7 +196,7 @@ def build_scene(
         train=views(splits["train"]),
         test=views(splits["test"]),
         val=views(splits["val"]) if splits.get("val") else None,
-        ray_space=RaySpace.contracted(near) if unbounded else RaySpace.euclidean(aabb, near, far),
+        ray_space=ray_space,
         background=tuple(float(b) for b in bg),
         root=os.path.abspath(root),
     )

@@ -435,6 +435,23 @@ def read_split_lists(root: str) -> dict[str, list[str]] | None:
     return out
 
 
+def read_colmap_poses(root: str) -> np.ndarray:
+    """(N, 3, 4) OpenGL camera-to-world of the registered images of COLMAP scene ``root`` (sorted by name),
+    read from the images file alone: what :func:`warpnerf.data.resolve.scene_rig` needs to classify the rig
+    before anything loads. DatasetError when there is no model or no finite pose."""
+    sparse = find_sparse(root)
+    if sparse is None:
+        raise DatasetError(f"no COLMAP sparse model in {root}")
+    ext = model_format(sparse)
+    path = os.path.join(sparse, "images" + ext)
+    imgs = read_images_text(path) if ext == ".txt" else read_images_binary(path)
+    poses = [image_c2w(im) for im in sorted(imgs.values(), key=lambda im: im.name)
+             if np.all(np.isfinite(im.qvec)) and np.all(np.isfinite(im.tvec)) and np.linalg.norm(im.qvec) > 1e-12]
+    if not poses:
+        raise DatasetError(f"{path}: no registered image")
+    return np.stack(poses)
+
+
 def load_colmap(
     root: str,
     downscale: int = 1,
@@ -443,7 +460,8 @@ def load_colmap(
     images_dir: str | None = None,
     normalize: bool = True,
     name: str | None = None,
-    unbounded: bool = False,
+    unbounded: bool | None = None,
+    ndc: bool | None = None,
 ) -> Scene:
     """Load a COLMAP scene folder (module docstring) into a :class:`Scene` (kind "colmap").
 
@@ -455,7 +473,9 @@ def load_colmap(
         white_background: composite RGBA photos on white (else black); the render background.
         images_dir: image folder (default ``images``, else ``colmap/images``).
         normalize: map the world as in :mod:`warpnerf.data.normalize` (``scene.normalization``, whose
-            ``framing`` says which framing the rig got and why).
+            ``framing`` says which framing and ray space the rig got and why).
+        unbounded, ndc: the ray space; None: chosen from the rig (forward-facing: NDC, 360°: contracted;
+            :func:`warpnerf.data.capture.build_scene`).
 
     Raises:
         DatasetError naming the file: no model folder, unsupported camera model, missing image,
@@ -496,4 +516,4 @@ def load_colmap(
         points = points[np.all(np.isfinite(points), axis=1)]
     return build_scene(frames, points, root, "colmap", images_path, name=name, split_lists=read_split_lists(root),
                        holdout=holdout, downscale=downscale, white_background=white_background, normalize=normalize,
-                       unbounded=unbounded)
+                       unbounded=unbounded, ndc=ndc)

@@ -17,7 +17,9 @@ from warpnerf.data.blender import load_blender
 from warpnerf.data.builtin import FORWARD_FACING, GENERATOR_VERSION, builtin_scenes, cache_root, load_builtin
 from warpnerf.data.errors import DatasetError
 from warpnerf.data.llff import load_llff
+from warpnerf.data.normalize import choose_ray_space
 from warpnerf.data.scene import Scene
+from warpnerf.geometry.rig import Rig, classify_rig
 
 DATA_ENV = "WARPNERF_DATA"
 _SUBDIRS = ("nerf_synthetic", "nerf_llff_data", "")
@@ -87,18 +89,40 @@ def dataset_scenes(data_root: str | None) -> dict[str, tuple[str, str]]:
     return found
 
 
-def is_forward_facing(name: str, data_root: str | None = None) -> bool:
+def capture_rig(folder: str, layout: str) -> Rig:
+    """The :class:`~warpnerf.geometry.rig.Rig` of the capture (layout "colmap" or "transforms") in ``folder``,
+    from its pose file alone (no image is read). DatasetError when the poses cannot be read."""
+    if layout == "colmap":
+        from warpnerf.data.colmap import read_colmap_poses  # lazy: the COLMAP reader stays out of --help
+
+        return classify_rig(read_colmap_poses(folder))
+    from warpnerf.data.transforms_json import read_transforms_poses  # lazy: stays out of --help (it brings the COLMAP reader)
+
+    return classify_rig(read_transforms_poses(folder))
+
+
+def is_forward_facing(name: str, data_root: str | None = None, ndc: bool | None = None,
+                      unbounded: bool | None = None) -> bool:
     """Whether scene ``name`` resolves (as :func:`load_scene` would) to a forward-facing scene, one
-    trained in LLFF's NDC ray space: a dataset scene in the LLFF layout or a built-in forward-facing
-    one. Looks at file names only; an unusable data root counts as none (loading reports it)."""
+    trained in LLFF's NDC ray space: a dataset scene in the LLFF layout, a built-in forward-facing one,
+    or a COLMAP / transforms.json capture whose rig is forward-facing (:func:`capture_rig`), or any
+    capture with ``ndc`` True, unless ``ndc`` is False or ``unbounded`` True
+    (:func:`~warpnerf.data.normalize.choose_ray_space`). Reads the capture's pose file, no image; an
+    unusable data root or pose file counts as none (loading reports it)."""
     try:
         root = data_root_from(data_root)
     except DatasetError:
         root = None
     hit = find_dataset(name, root)
-    if hit:
-        return hit[1] == "llff"
-    return name in FORWARD_FACING
+    if not hit:
+        return name in FORWARD_FACING
+    folder, layout = hit
+    if layout in ("colmap", "transforms"):
+        try:
+            return choose_ray_space(capture_rig(folder, layout).kind, unbounded, ndc)[0] == "ndc"
+        except (DatasetError, ValueError):  # a bad file, or --ndc with --unbounded: loading says so
+            return False
+    return layout == "llff"
 
 
 def list_scenes(data_root: str | None = None) -> tuple[list[str], list[str]]:
@@ -119,7 +143,8 @@ def load_scene(
     llff_test: str = "every8",
     progress: bool = True,
     allow_rgb: bool = False,
-    unbounded: bool = False,
+    unbounded: bool | None = None,
+    ndc: bool | None = None,
 ) -> Scene:
     """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
 
@@ -136,7 +161,10 @@ def load_scene(
         llff_holdout: LLFF, COLMAP and transforms.json: every n-th view is a test view (unless
             the files name a split).
         unbounded: COLMAP and transforms.json: a 360° capture with a distant background, trained
-            in a contracted ray space (the built-in unbounded scenes always are).
+            in a contracted ray space (the built-in unbounded scenes always are); None: 360° rigs are
+            (:func:`~warpnerf.data.normalize.choose_ray_space`).
+        ndc: COLMAP and transforms.json: train in LLFF's NDC; None: forward-facing rigs do (LLFF
+            scenes always do: False is refused for them, as True is for Blender-layout scenes).
 
     Raises:
         DatasetError: unknown name (the message lists what exists) or any loader error.
@@ -145,6 +173,10 @@ def load_scene(
     hit = find_dataset(name, root)
     if hit:
         folder, layout = hit
+        if ndc is not None and layout in ("blender", "llff") and ndc != (layout == "llff"):
+            raise DatasetError(f"scene '{name}' is in the {'LLFF' if layout == 'llff' else 'Blender'} layout, which "
+                               f"trains {'in NDC only' if layout == 'llff' else 'in a box only'}; "
+                               f"--ndc / --no-ndc choose for COLMAP and transforms.json captures")
         if layout == "blender":
             return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
                                 allow_rgb=allow_rgb)
@@ -152,15 +184,18 @@ def load_scene(
             from warpnerf.data.transforms_json import load_transforms_json  # lazy: stays out of --help (it brings the COLMAP reader)
 
             return load_transforms_json(folder, downscale=downscale, holdout=llff_holdout,
-                                        white_background=white_background, name=name, unbounded=unbounded)
+                                        white_background=white_background, name=name, unbounded=unbounded, ndc=ndc)
         if layout == "colmap":
             from warpnerf.data.colmap import load_colmap  # lazy: the COLMAP reader stays out of --help
 
             return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
-                               name=name, unbounded=unbounded)
+                               name=name, unbounded=unbounded, ndc=ndc)
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name,
                          test=llff_test)
     if name in builtin_scenes():
+        if ndc is not None and ndc != (name in FORWARD_FACING):
+            raise DatasetError(f"the built-in scene '{name}' trains {'in NDC' if name in FORWARD_FACING else 'without NDC'} "
+                               f"only; --ndc / --no-ndc choose for COLMAP and transforms.json captures")
         return load_builtin(
             name,
             resolution=builtin_resolution,

@@ -90,6 +90,14 @@ def _image_path(root: str, file_path: str) -> str:
     return p + ".png"  # Blender/instant-ngp style paths without a suffix
 
 
+def read_transforms_poses(root: str) -> np.ndarray:
+    """(N, 3, 4) OpenGL camera-to-world of the frames of ``root/transforms.json``, read from the file alone
+    (:func:`warpnerf.data.resolve.scene_rig`); DatasetError for a malformed file or pose."""
+    path = os.path.join(root, TRANSFORMS_FILE)
+    meta = read_transforms_json(path)  # checks every frame's matrix
+    return np.stack([np.asarray(fr["transform_matrix"], np.float64)[:3, :4] for fr in meta["frames"]])
+
+
 def load_transforms_json(
     root: str,
     downscale: int = 1,
@@ -97,7 +105,8 @@ def load_transforms_json(
     white_background: bool = True,
     normalize: bool = True,
     name: str | None = None,
-    unbounded: bool = False,
+    unbounded: bool | None = None,
+    ndc: bool | None = None,
 ) -> Scene:
     """Load a single-``transforms.json`` scene folder (module docstring) into a Scene (kind "transforms").
 
@@ -131,4 +140,4 @@ def load_transforms_json(
     return build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
                        downscale=downscale, white_background=white_background,
                        aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize,
-                       unbounded=unbounded)
+                       unbounded=unbounded, ndc=ndc)

@@ -223,7 +223,8 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
         os.unlink(os.path.join(out_dir, "metrics.json"))  # --force on a finished run: it is unfinished again
     write_config(os.path.join(out_dir, "config.toml"), cfg)
     preset = f"configs/{cfg.task}.toml"
-    ff_preset = forward_facing_preset(cfg.task, cfg.scene, cfg.data_root)  # as build_config decided
+    ff_preset = forward_facing_preset(cfg.task, cfg.scene, cfg.data_root, ndc=cfg.ndc,
+                                      unbounded=cfg.unbounded)  # as build_config decided
     if ff_preset:
         preset += f" + {os.path.basename(ff_preset)}"
     print(f"scene '{scene.name}' from {scene.source} ({scene.root}); task {cfg.task} (preset {preset}); "

@@ -96,7 +96,8 @@ class TrainConfig:
     model: str = "ngp"  # grid encoding: ngp (Instant-NGP hash grid) | mtrf (multi-resolution CP, paper's Mtrf)
     downscale: int = 1  # integer image downscale applied at load time
     builtin_resolution: Optional[int] = None  # image size of built-in scenes (unset: the generator's default)
-    unbounded: bool = False  # COLMAP / transforms.json captures: 360° scene with a distant background (scene contraction)
+    unbounded: Optional[bool] = None  # COLMAP / transforms.json captures: contract the scene beyond the cameras (360° scenes with a distant background); unset: chosen from the rig (360° rigs are), --no-unbounded keeps a box
+    ndc: Optional[bool] = None  # COLMAP / transforms.json captures: train in LLFF's NDC and with the forward-facing preset; unset: chosen from the rig (forward-facing rigs do; LLFF scenes always), --no-ndc keeps a box
     # --- optimisation ---
     iters: int = 2000  # training steps
     batch_rays: int = 4096  # rays per step at the start; adapted to keep target_samples
@@ -336,16 +337,18 @@ def resolve_config_file(path: str) -> str:
 FORWARD_FACING_SUFFIX = "_forward_facing"
 
 
-def forward_facing_preset(task: str, scene: str, data_root: Optional[str]) -> Optional[str]:
+def forward_facing_preset(task: str, scene: str, data_root: Optional[str], ndc: Optional[bool] = None,
+                          unbounded: Optional[bool] = None) -> Optional[str]:
     """Path of ``configs/<task>_forward_facing.toml`` when one is shipped for ``task`` and ``scene``
-    resolves to a forward-facing scene (LLFF layout: fern, the built-in ``yard``;
+    resolves to a scene that trains in NDC (LLFF layout: fern, the built-in ``yard``; a COLMAP or
+    transforms.json capture of a forward-facing rig, unless ``ndc`` is False or ``unbounded`` True;
     :func:`warpnerf.data.resolve.is_forward_facing`), else None."""
     path = preset_path(task + FORWARD_FACING_SUFFIX)
     if not os.path.exists(path):
         return None
     from warpnerf.data.resolve import is_forward_facing  # lazy: warpnerf.data loads torch; the CLI imports this module
 
-    return path if is_forward_facing(scene, data_root) else None
+    return path if is_forward_facing(scene, data_root, ndc=ndc, unbounded=unbounded) else None
 
 
 def build_config(task: Optional[str], config_file: Optional[str] = None, overrides: Optional[dict] = None) -> TrainConfig:
@@ -369,7 +372,8 @@ def build_config(task: Optional[str], config_file: Optional[str] = None, overrid
             raise ConfigError(f"unknown config key '{k}'")
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
     chosen = {**values, **file_values, **given}
-    ff_preset = forward_facing_preset(task, chosen.get("scene", TrainConfig.scene), chosen.get("data_root"))
+    ff_preset = forward_facing_preset(task, chosen.get("scene", TrainConfig.scene), chosen.get("data_root"),
+                                      ndc=chosen.get("ndc"), unbounded=chosen.get("unbounded"))
     if ff_preset:
         values.update(load_toml(ff_preset))
     values.update(file_values)
@@ -397,6 +401,8 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
+    if cfg.ndc and cfg.unbounded:
+        raise ConfigError("ndc and unbounded are both on: a scene has one ray space (NDC or contracted); drop one")
     if cfg.lr_warmup < 0:
         raise ConfigError(f"lr_warmup must be >= 0, got {cfg.lr_warmup}")
     if cfg.sample_budget < cfg.max_samples_per_ray:
