@@ -190,3 +190,39 @@ def test_export_sizes_beyond_the_memory_budget_are_one_line(chair_run, capsys, a
     assert main(["export", "--run", str(chair_run), *argv, "--quiet"]) == 2
     one_line_error(capsys, "needs at least", "memory_budget_mb = 4096", needle)
     assert tree(chair_run) == before
+
+
+def test_export_writes_its_counts_and_records_them(chair_run, tmp_path, capsys):
+    """``<out>.export.json`` and ``--record``: the counts are the written PLY's, and the floaters-kept export's
+    counts are the default export's counts before removal (the same marching cubes)."""
+    import json
+
+    from warpnerf.runs import record as R
+
+    records = tmp_path / "records"
+    common = ["export", "--run", str(chair_run), "--resolution", "48", "--threshold", "5", "--quiet",
+              "--records-dir", str(records)]
+    assert main([*common, "--out", str(tmp_path / "m.ply"), "--record", "chair_mesh"]) == 0
+    assert main([*common, "--out", str(tmp_path / "all.ply"), "--keep-floaters", "--record", "chair_mesh_all"]) == 0
+    assert "record: " in capsys.readouterr().out
+    rec, rec_all = (R.load_record(str(records / f"{n}.json")) for n in ("chair_mesh", "chair_mesh_all"))
+    for r, ply in ((rec, "m.ply"), (rec_all, "all.ply")):
+        e = r["export"]
+        assert r["kind"] == "export" and r["runs"] == [] and r["command"].startswith("warpnerf export --run ")
+        assert e == json.loads((tmp_path / ply.replace(".ply", ".export.json")).read_text())
+        verts, _, faces = E.read_ply(str(tmp_path / ply))
+        assert (e["vertices"], e["faces"], e["pieces"]) == (len(verts), len(faces), E.face_components(faces, len(verts))[1])
+        assert e["peak_rss_mb"] > 0 and e["peak_rss_mb_load"] > 0 and e["export_seconds"] >= 0
+        assert r["source_run"]["metrics"] == json.loads((chair_run / "metrics.json").read_text())
+    e, e_all = rec["export"], rec_all["export"]
+    assert e["min_component_faces"] == E.DEFAULT_MIN_COMPONENT_FACES and e_all["min_component_faces"] == 1
+    for key in ("vertices", "faces", "pieces"):
+        assert e_all[key] == e_all[f"{key}_before"] == e[f"{key}_before"] >= e[key]
+
+
+def test_export_record_name_is_checked_before_any_work(chair_run, tmp_path, capsys):
+    out = tmp_path / "m.ply"
+    assert main(["export", "--run", str(chair_run), "--resolution", "16", "--out", str(out), "--quiet",
+                 "--record", "../escape", "--records-dir", str(tmp_path)]) == 2
+    assert "record name" in capsys.readouterr().err
+    assert not out.exists()

@@ -287,3 +287,51 @@ def test_pose_table_keeps_starts_and_records_apart(tmp_path):
     assert len(fern) == 2
     assert sum("start identity" in line and "| 2.500 |" in line for line in fern) == 1
     assert sum("start identity" not in line and "| 0.300 |" in line for line in fern) == 1
+
+
+def _export_record(tmp_path, name, min_faces, counts, run_metrics):
+    run = _run_folder(tmp_path / "lego_run", run_metrics, 'task = "full"\nscene = "lego"\n')
+    export = {"what": "mesh", "run": run, "out": "mesh.ply", "resolution": 256, "threshold": 10.0,
+              "min_component_faces": min_faces, "export_seconds": 12.3, "peak_rss_mb_load": 900.0,
+              "peak_rss_mb": 1500.0, **counts}
+    cpu = {"wall_seconds": 30.0, "own_cpu_seconds": 50.0, "other_cores": 1.2, "alone": False}
+    rec = R.build_record(name, "export", ["export", "--run", run], [], cpu, threads=2,
+                         extra={"export": export, "source_run": R.read_run_files(run)})
+    path = R.record_path(name, str(tmp_path / "docs" / "results"))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    return R.write_record(path, rec)
+
+
+def test_export_records_get_their_own_table_and_no_run_row(tmp_path):
+    metrics = {"scene": "lego", "task": "full", "iters": 3400, "psnr": 31.234, "config_hash": "h"}
+    _export_record(tmp_path, "lego_mesh", 100, {"vertices_before": 1234567, "faces_before": 2469000,
+                                                "pieces_before": 1063, "vertices": 1200000, "faces": 2400000,
+                                                "pieces": 10}, metrics)
+    _export_record(tmp_path, "lego_mesh_all", 1, {"vertices_before": 1234567, "faces_before": 2469000,
+                                                  "pieces_before": 1063, "vertices": 1234567, "faces": 2469000,
+                                                  "pieces": 1063}, metrics)
+    records = R.load_records(str(tmp_path / "docs" / "results"))
+    assert [r["kind"] for r in records] == ["export", "export"] and report.recorded_runs(records) == []
+    text = report.render_results(records, str(tmp_path / "docs" / "results"))
+    section = text[text.index(f"## {report.EXPORTS_TITLE}"):]
+    rows = [line for line in section.splitlines() if line.startswith("| [")]
+    assert len(rows) == 2
+    assert rows[0].startswith("| [lego_mesh](") and "lego full, 3400 iters, test PSNR 31.23" in rows[0]
+    assert "| 1,234,567 → 1,200,000 | 2,469,000 → 2,400,000 | 1,063 → 10 |" in rows[0]
+    assert "| 100 |" in rows[0] and "| 900, 1500 |" in rows[0] and "no (1.20)" in rows[0]
+    assert "none (--keep-floaters)" in rows[1] and "| 1,063 → 1,063 |" in rows[1]
+    # the runs table does not list the source run: the export trained nothing
+    assert "No record yet." in text[text.index("## Every recorded run"):text.index("## " + report.TASK_TITLES["pose"])]
+    # without export records the section is not there
+    assert report.EXPORTS_TITLE not in report.render_results([], "docs/results")
+
+
+def test_an_export_record_without_its_figures_is_refused(tmp_path):
+    path = _export_record(tmp_path, "x", 100, {"vertices_before": 1, "faces_before": 1, "pieces_before": 1,
+                                               "vertices": 1, "faces": 1, "pieces": 1}, {"psnr": 20.0})
+    rec = json.loads(open(path).read())
+    del rec["export"]
+    with open(path, "w") as fh:
+        json.dump(rec, fh)
+    with pytest.raises(R.RecordError, match="export record without"):
+        R.load_record(path)

@@ -8,9 +8,13 @@ each command imports its module when it runs. Errors the user can fix raise ``Us
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import time
 
+from warpnerf import device
 from warpnerf.cli.errors import UserError
+from warpnerf.runs import record
 
 
 def _run_args(p: argparse.ArgumentParser) -> None:
@@ -47,6 +51,11 @@ def add_output_commands(sub) -> None:
     e.add_argument("--min-opacity", type=float, default=0.95, help="points: keep pixels at least this opaque")
     e.add_argument("--max-points", type=int, default=1_000_000)
     e.add_argument("--max-views", type=int, default=0, help="points: render at most this many training views (0: all)")
+    e.add_argument("--record", metavar="NAME", default=None,
+                   help="also write a results record docs/results/NAME.json: the command, commit, machine, the "
+                        "export's counts, time and peak memory (<out>.export.json) and the run's metrics and config")
+    e.add_argument("--records-dir", default=None, help="folder for --record (default docs/results)")
+    e.add_argument("--record-replace", action="store_true", help="with --record: replace an existing record")
     e.set_defaults(func=cmd_export)
 
     v = sub.add_parser("view", help="live viewer of a run in the browser (viser); follows a training run's checkpoints")
@@ -91,8 +100,11 @@ def cmd_render(args) -> int:
 
 def cmd_export(args) -> int:
     from warpnerf.outputs.export import (DEFAULT_MIN_COMPONENT_FACES,  # lazy: keeps --help fast (torch)
-                                         DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, write_ply)
+                                         DEFAULT_THRESHOLD, ExportError, extract_mesh, extract_points, info_path,
+                                         write_ply)
     from warpnerf.runs.folder import load_run  # lazy: keeps --help fast (torch)
+    from warpnerf.train.checkpoint import atomic_write_text  # lazy: keeps --help fast (torch)
+    from warpnerf.train.trainer import peak_rss_mb, start_memory_window  # lazy: keeps --help fast (torch)
 
     if args.resolution < 8 or args.scale <= 0 or args.max_points < 1:
         raise UserError("need --resolution >= 8, --scale > 0 and --max-points >= 1")
@@ -101,7 +113,13 @@ def cmd_export(args) -> int:
     if args.min_component_faces is not None and args.min_component_faces < 1:
         raise UserError("need --min-component-faces >= 1 (--keep-floaters keeps every piece)")
     out = args.out or os.path.join(args.run, f"{args.what}.ply")
+    # a record that could not be written fails before any work (RecordError: one line)
+    record_path = record.check_new_record(args.record, args.records_dir, args.record_replace) if args.record else None
+    meter = record.CpuMeter().start()
     trainer = load_run(args.run, args.device, progress=not args.quiet)
+    info = {"what": args.what, "run": args.run, "out": out, "peak_rss_mb_load": round(peak_rss_mb(), 1)}
+    start_memory_window()  # from here the peak is the export's (the loaded run stays resident)
+    t0 = time.perf_counter()
     try:
         if args.what == "mesh":
             threshold = DEFAULT_THRESHOLD if args.threshold is None else args.threshold
@@ -109,6 +127,7 @@ def cmd_export(args) -> int:
                          else args.min_component_faces)
             mesh = extract_mesh(trainer, args.resolution, threshold, min_faces)
             write_ply(out, mesh.verts, mesh.colors, mesh.faces, mesh.normals)
+            info.update(resolution=args.resolution, threshold=threshold, min_component_faces=min_faces, **mesh.counts)
             print(f"mesh: {mesh.summary}, iso-level {threshold}, written to {out}")
         else:
             points, colors = extract_points(trainer, args.scale, args.min_opacity, args.max_points,
@@ -116,9 +135,20 @@ def cmd_export(args) -> int:
             if len(points) == 0:
                 raise ExportError(f"no pixel is more opaque than --min-opacity {args.min_opacity}")
             write_ply(out, points, colors)
+            info.update(scale=args.scale, min_opacity=args.min_opacity, max_views=args.max_views, points=len(points))
             print(f"points: {len(points)} coloured points written to {out}")
     except ExportError as e:
         raise UserError(str(e)) from e
+    info.update(export_seconds=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_rss_mb(), 1))
+    atomic_write_text(info_path(out), json.dumps(info, indent=1, sort_keys=True) + "\n")
+    if record_path:
+        cpu = meter.stop()
+        rec = record.build_record(args.record, "export", args.argv, [], cpu, threads=device.num_threads(),
+                                  extra={"export": info, "source_run": record.read_run_files(args.run)})
+        record.write_record(record_path, rec)
+        alone = {True: "alone", False: f"NOT alone: other processes used {cpu['other_cores']:.2f} cores",
+                 None: "alone: unknown"}[cpu["alone"]]
+        print(f"record: {record_path} ({alone})")
     return 0
 
 

@@ -14,10 +14,15 @@
 Files are binary PLY written with ``plyfile`` (vertex x, y, z, [nx, ny, nz,] red, green, blue; faces as
 ``vertex_indices``). These libraries and scipy (connected components) are the optional extra
 ``pip install 'warpnerf[export]'``.
+
+Beside the PLY, ``warpnerf export`` writes ``<name>.export.json`` (:func:`info_path`): what was exported
+with which settings, the mesh's counts before and after the floaters were removed (:attr:`Mesh.counts`),
+the time and the peak memory. ``--record NAME`` puts the same into a results record.
 """
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -143,13 +148,21 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 class Mesh(NamedTuple):
     """An exported mesh: vertices (V, 3) float32, faces (F, 3) int32 (CCW seen from outside),
-    colours (V, 3) uint8, outward unit normals (V, 3) float32, and the one-line ``summary`` of the
-    vertex, face and piece counts before and after the floaters were removed."""
+    colours (V, 3) uint8, outward unit normals (V, 3) float32, the one-line ``summary`` of the
+    vertex, face and piece counts before and after the floaters were removed, and those counts
+    (``counts``: ``vertices_before``, ``faces_before``, ``pieces_before`` from marching cubes;
+    ``vertices``, ``faces``, ``pieces`` written)."""
     verts: np.ndarray
     faces: np.ndarray
     colors: np.ndarray
     normals: np.ndarray
     summary: str
+    counts: dict
+
+
+def info_path(ply_path: str) -> str:
+    """The JSON file ``warpnerf export`` writes beside the PLY ``ply_path``: ``<name>.export.json``."""
+    return os.path.splitext(ply_path)[0] + ".export.json"
 
 
 def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRESHOLD,
@@ -179,7 +192,9 @@ def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRE
     # skimage orders faces clockwise seen from the low-value side here; flip to CCW from outside
     faces = faces[:, ::-1]
     before = f"{len(verts):,} vertices, {len(faces):,} faces"
+    counts = {"vertices_before": len(verts), "faces_before": len(faces)}
     keep, faces, (pieces_before, pieces) = remove_small_components(faces, len(verts), max(min_component_faces, 1))
+    counts.update(pieces_before=pieces_before, vertices=len(keep), faces=len(faces), pieces=pieces)
     after = f"{len(keep):,} vertices, {len(faces):,} faces, {pieces:,} pieces"
     summary = (f"{after} (floaters kept)" if min_component_faces <= 1 else
                f"{after} (no piece under {min_component_faces} faces)" if pieces == pieces_before else
@@ -189,7 +204,7 @@ def extract_mesh(trainer, resolution: int = 128, threshold: float = DEFAULT_THRE
     # skimage's normals point down the density gradient (outwards); rays hit the surface going inwards
     colors = vertex_colors(trainer, verts, -normals)
     verts = verts.astype(np.float32)
-    return Mesh(verts, faces, colors, vertex_normals(verts, faces), summary)
+    return Mesh(verts, faces, colors, vertex_normals(verts, faces), summary, counts)
 
 
 @torch.no_grad()

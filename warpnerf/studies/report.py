@@ -309,6 +309,39 @@ def fewshot_curves(rows: list[dict]) -> dict:
     return panels
 
 
+EXPORTS_TITLE = "Meshes exported from recorded runs"
+
+
+def export_table(records: list[dict], link_prefix: str) -> str:
+    """One row per mesh ``export --record`` record: the run it read (from the record's ``source_run``), the
+    settings, the counts before and after the floaters were removed, the export's time and peak memory.
+    "" when there is none."""
+    recs = [r for r in records if r["kind"] == "export" and r["export"].get("what") == "mesh"]
+    if not recs:
+        return ""
+    lines = ["| record | run | resolution | iso-level | pieces dropped under (faces) | vertices (before → after) "
+             "| faces (before → after) | pieces (before → after) | export (s) | peak RSS (MB): run loaded, export "
+             "| alone (other cores) | commit, date |",
+             "|" + "---|" * 12]
+    for rec in recs:
+        e, m, c = rec["export"], rec["source_run"]["metrics"], rec["source_run"]["config"]
+        run = (f"{m.get('scene', c.get('scene'))} {m.get('task', c.get('task'))}, {m.get('iters', c.get('iters'))} iters, "
+               f"test PSNR {_fmt(m.get('psnr'), 2)}")
+        dropped = "none (--keep-floaters)" if e["min_component_faces"] <= 1 else str(e["min_component_faces"])
+        counts = [f"{e[k + '_before']:,} → {e[k]:,}" for k in ("vertices", "faces", "pieces")]
+        row = {"kind": rec["kind"], "commit": rec.get("commit"), "dirty": rec.get("dirty"), "date": rec["date"]}
+        lines.append(" | ".join([f"| {_link(rec['name'], link_prefix)}", run, str(e["resolution"]), f"{e['threshold']:g}",
+                                 dropped, *counts, _fmt(e.get("export_seconds"), 0),
+                                 f"{_fmt(e.get('peak_rss_mb_load'), 0)}, {_fmt(e.get('peak_rss_mb'), 0)}",
+                                 _alone(rec["cpu"]), _provenance(row)]) + " |")
+    return "\n".join(lines) + (
+        "\n\n`warpnerf export --what mesh --record NAME` (docs/outputs.md). Before: marching cubes' output; after: the "
+        "PLY written, once the connected pieces (faces sharing a vertex) under the given face count are dropped "
+        "(the largest always stays). Peak RSS: of the process once the run is loaded (scene and field), then "
+        "during the export alone (the loaded run stays resident). The commit is the export's; the run's own "
+        "metrics and config are in the record.")
+
+
 # --- documents ------------------------------------------------------------------------------------
 
 def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
@@ -340,6 +373,9 @@ def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
                   f"![few-shot curves]({prefix}{CURVES_PNG})", "",
                   "Mean over the recorded seeds at each measured step, ±1 std shaded; the split each curve was "
                   "measured on is in its label. Drawn by `warpnerf report` from the records' held-out histories."]
+    exports = export_table(records, prefix)
+    if exports:
+        parts += ["", f"## {EXPORTS_TITLE}", "", exports]
     return "\n".join(parts) + "\n"
 
 
