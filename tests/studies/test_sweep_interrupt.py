@@ -167,3 +167,31 @@ def test_sigterm_to_the_driver_stops_worker_processes(spec, tmp_path):
     assert status(out) == {FIRST: ("interrupted", 1), SECOND: ("interrupted", 1)}
     for name in (FIRST, SECOND):
         assert 20 <= ckpt_step(out / name) < 100000 and not (out / name / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("then", ["second signal", "grace over"])
+def test_a_ray_sweep_kills_tasks_that_do_not_stop(spec, monkeypatch, then):
+    """The Ray driver's stop without Ray (a stand-in module): the first SIGINT cancels every task gently
+    (force=False: Ray raises SIGINT in it, the training checkpoints); a second one, or RAY_STOP_GRACE s without
+    their results, kills them (force=True). tests/studies/test_sweep_ray_head.py stops real Ray tasks."""
+    import types
+
+    from warpnerf.studies import sweep
+
+    cancels, signals = [], [KeyboardInterrupt] * (2 if then == "second signal" else 1)
+
+    def wait(refs, num_returns, timeout):
+        if signals:
+            raise signals.pop()
+        return [], refs
+
+    task = types.SimpleNamespace(options=lambda **kw: task, remote=lambda *args: object())
+    fake = types.SimpleNamespace(is_initialized=lambda: True, remote=lambda fn: task, wait=wait,
+                                 cancel=lambda ref, force: cancels.append(force))
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setattr(sweep, "RAY_STOP_GRACE", 0.0 if then == "grace over" else 600.0)
+    pending = [sweep.RunResult(r) for r in sweep.expand(sweep.load_spec(str(spec)))]
+    sweep._run_ray(pending, sweep.load_spec(str(spec)), 1, None, sweep._Progress(2, 0, enabled=False))
+    assert cancels == [False, False, True, True]
+    assert [(r.status, r.attempts) for r in pending] == [("interrupted", 1)] * 2
+    assert all("killed" in r.error for r in pending)

@@ -20,8 +20,10 @@ Restartable: a run whose folder already holds a finished run of the identical co
 (``runs.folder.finished_metrics``) is skipped; a finished run of another configuration is never
 replaced without ``overwrite`` (the sweep refuses before it starts, naming the changed keys); a
 failing run is reported with a one-line error and retried up to ``retries`` times; the others carry on.
-SIGINT (Ctrl-C) or SIGTERM stops the sweep instead: the running training saves its checkpoint, it is not
-retried and nothing else starts (``SweepInterrupted``, exit 130); the same command again resumes it.
+SIGINT (Ctrl-C) or SIGTERM stops the sweep instead: the running trainings save their checkpoints, they are
+not retried and nothing else starts (``SweepInterrupted``, exit 130); the same command again resumes them.
+Local workers get the stop as SIGTERM from the driver, Ray tasks as ``ray.cancel(force=False)`` (SIGINT in
+the task, on any node); the driver waits for their checkpoints, and a second signal kills them.
 ``out`` (and ``data_root``) are made absolute on the driver, so every worker writes where the driver
 looks, whatever its working directory; scene names cannot lead a run folder or log outside ``out``.
 
@@ -576,17 +578,28 @@ def ray_missing_message() -> str:
     return "the ray backend needs Ray: pip install 'warpnerf[cluster]' (or: pip install ray)"
 
 
+RAY_STOP_GRACE = 300.0  # s a stopped Ray sweep waits for its running trainings' checkpoints, then kills them
+
+
 def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: Optional[str],
              progress: _Progress, overwrite: bool = False) -> None:
-    """One Ray task per run with the spec's resources; output streamed by Ray, results gathered here."""
+    """One Ray task per run with the spec's resources; output streamed by Ray, results gathered here.
+
+    A stop (SIGINT/SIGTERM to the driver, or a run a signal reached) cancels every task with
+    ``ray.cancel(force=False)``: a queued task never starts, and Ray raises SIGINT in a running one, which
+    its training turns into a checkpoint at the next step boundary, on whatever node it runs. The driver
+    waits up to ``RAY_STOP_GRACE`` s for them; a second signal (or the deadline) kills them instead."""
     import ray  # optional extra: warpnerf[cluster]
 
     if not ray.is_initialized():
         ray.init(address=address, log_to_driver=True)
+        with contextlib.suppress(ValueError):  # not the main thread; run_sweep restores the old handler
+            signal.signal(signal.SIGTERM, _raise_interrupt)  # ray.init's handler exits at once: stop as on SIGINT
     num_cpus = spec.num_cpus if spec.num_cpus is not None else 1
     task = ray.remote(execute_run).options(num_cpus=num_cpus, num_gpus=spec.num_gpus, max_retries=0)
     threads = max(1, int(num_cpus))
     running: dict = {}
+    deadline: Optional[float] = None  # set when the stop begins
 
     def submit(res: RunResult):
         res.attempts += 1
@@ -594,35 +607,49 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
         ref = task.remote(res.run.cfg.to_dict(), threads, _log_path(res.run), True, overwrite)
         running[ref] = (res, time.perf_counter())
 
+    def cancel(force: bool) -> None:
+        for ref in running:
+            with contextlib.suppress(Exception):  # a task that just ended
+                ray.cancel(ref, force=force)
+
+    def stop() -> None:
+        nonlocal deadline
+        deadline = time.monotonic() + RAY_STOP_GRACE
+        if running:
+            progress.write(f"stopping: running trainings save their checkpoints, queued runs do not start (waiting "
+                           f"up to {RAY_STOP_GRACE:.0f} s; a second Ctrl-C kills them)")
+        cancel(force=False)
+
     for res in pending:
         submit(res)  # Ray queues what does not fit the cluster's free resources
     while running:
         try:
-            done, _ = ray.wait(list(running), num_returns=1)
-        except KeyboardInterrupt:  # cancelled tasks keep their last periodic checkpoint for the restart
-            for ref, (res, _) in running.items():
-                with contextlib.suppress(Exception):
-                    ray.cancel(ref)
-                res.status, res.error = "interrupted", "Ray task cancelled, its last checkpoint kept"
+            if deadline is not None and time.monotonic() > deadline:
+                raise KeyboardInterrupt  # the grace period is over: as a second signal
+            done, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
+        except KeyboardInterrupt:  # SIGINT/SIGTERM to the driver
+            if deadline is None:
+                stop()
+                continue
+            cancel(force=True)  # a second one: do not wait for the checkpoints
+            for res, _ in running.values():
+                res.status, res.error = "interrupted", "Ray task killed before it stopped, its last checkpoint kept"
             return
-        ref = done[0]
-        res, t0 = running.pop(ref)
-        try:
-            out = ray.get(ref)
-        except Exception as e:  # noqa: BLE001 - worker crash, node lost: the run failed
-            out = {"status": "failed", "error": _one_line(e)}
-        _settle(res, out, time.perf_counter() - t0)
-        final = res.status in ("done", "interrupted") or res.attempts > retries
-        progress.finished(res, final)
-        if res.status == "interrupted":  # a signal reached the worker: stop the sweep
-            for other in running:
-                with contextlib.suppress(Exception):
-                    ray.cancel(other)
-            for other_res, _ in running.values():
-                other_res.status, other_res.error = "interrupted", "Ray task cancelled, its last checkpoint kept"
-            return
-        if not final:
-            submit(res)
+        for ref in done:
+            res, t0 = running.pop(ref)
+            try:
+                out = ray.get(ref)
+            except Exception as e:  # noqa: BLE001 - worker crash, node lost: the run failed
+                cancelled = deadline is not None or isinstance(e, ray.exceptions.TaskCancelledError)
+                out = ({"status": "interrupted", "error": "Ray task cancelled (queued, or outside training)"}
+                       if cancelled else {"status": "failed", "error": _one_line(e)})
+            _settle(res, out, time.perf_counter() - t0)
+            final = res.status in ("done", "interrupted") or res.attempts > retries
+            progress.finished(res, final)
+            if res.status == "interrupted" and deadline is None:  # a signal reached the worker: stop the others
+                stop()
+            if not final and deadline is None:
+                submit(res)
 
 
 def _settle(res: RunResult, out: dict, seconds: float) -> None:
