@@ -206,3 +206,19 @@ def test_renamed_settings_keep_their_old_flags():
     overrides = config_overrides(args)
     assert overrides["checkpoint_every"] == 10 and overrides["eval_view_stride"] == 2
     assert "save_every" not in overrides and "eval_every" not in overrides
+
+
+def test_forward_facing_pose_preset(monkeypatch):
+    """task=pose on a forward-facing scene merges configs/pose_forward_facing.toml over pose.toml (the fern
+    pilot's settings, docs/studies/2026-12-07-pose-fern-barf-protocol.md); object scenes keep pose.toml and a
+    flag still wins."""
+    monkeypatch.delenv("WARPNERF_DATA", raising=False)
+    ff = C.load_toml(C.preset_path("pose" + C.FORWARD_FACING_SUFFIX))
+    pose = C.load_toml(C.preset_path("pose"))
+    assert ff["march_steps"] != pose["march_steps"] and ff["pose_lr_final"] != pose["pose_lr_final"]
+    yard = C.build_config("pose", overrides={"scene": "yard"})
+    assert {k: getattr(yard, k) for k in ff} == ff
+    assert yard.g2fr and yard.iters == pose["iters"]  # the rest is pose.toml's
+    chair = C.build_config("pose", overrides={"scene": "chair"})
+    assert {k: getattr(chair, k) for k in ff} == {k: pose.get(k, getattr(C.TrainConfig, k)) for k in ff}
+    assert C.build_config("pose", overrides={"scene": "yard", "march_steps": 384}).march_steps == 384
