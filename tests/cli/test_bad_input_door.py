@@ -46,6 +46,29 @@ def test_builtin_resolution_out_of_range_is_refused(tmp_path, capsys, res):
             "builtin_resolution")
 
 
+def test_an_unknown_background_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([*TRAIN, "--background", "purple", "--out", str(tmp_path / "run")])
+    assert e.value.code == 2
+    one_line_error(capsys, "--background", "purple", "white")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("flags, needles", [
+    (["--ndc", "--unbounded"], ("ndc and unbounded",)),
+    (["--background", "random", "--no-random-background"], ("background random needs random_background",)),
+])
+def test_background_and_ray_space_flags_that_cannot_be(tmp_path, capsys, flags, needles):
+    refused(tmp_path, capsys, [*TRAIN, *flags, "--out", str(tmp_path / "run")], *needles)
+
+
+def test_ndc_on_a_scene_that_cannot_have_it(tmp_path, capsys):
+    """--ndc chooses the ray space of captures; a Blender-layout scene trains in its box only."""
+    write_blender(str(tmp_path / "data" / "scene"), n=2, size=16)
+    refused(tmp_path, capsys, [*TRAIN, "--data-root", str(tmp_path / "data"), "--scene", "scene", "--ndc",
+                               "--out", str(tmp_path / "run")], "Blender layout", "--ndc")
+
+
 # --- data loaders: a non-numeric or non-positive value names the file and the key -------------------------
 
 

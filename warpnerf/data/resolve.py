@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 
+from warpnerf.data.background import BACKGROUNDS, FIXED, settle_background
 from warpnerf.data.blender import load_blender
 from warpnerf.data.builtin import FORWARD_FACING, GENERATOR_VERSION, builtin_scenes, cache_root, load_builtin
 from warpnerf.data.errors import DatasetError
@@ -145,6 +146,7 @@ def load_scene(
     allow_rgb: bool = False,
     unbounded: bool | None = None,
     ndc: bool | None = None,
+    background: str | None = None,
 ) -> Scene:
     """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
 
@@ -165,10 +167,27 @@ def load_scene(
             (:func:`~warpnerf.data.normalize.choose_ray_space`).
         ndc: COLMAP and transforms.json: train in LLFF's NDC; None: forward-facing rigs do (LLFF
             scenes always do: False is refused for them, as True is for Blender-layout scenes).
+        background: every layout: :data:`~warpnerf.data.background.BACKGROUNDS` (None: "auto"), applied by
+            :func:`~warpnerf.data.background.settle_background`; "white" / "black" also choose what images
+            with alpha are composited on (over ``white_background``).
+
+    The scene's ``background_note`` says what was chosen (empty for images with alpha and "auto").
 
     Raises:
         DatasetError: unknown name (the message lists what exists) or any loader error.
     """
+    if background is not None and background not in BACKGROUNDS:
+        raise DatasetError(f"unknown background '{background}': expected one of {', '.join(BACKGROUNDS)}")
+    if background in FIXED:
+        white_background = background == "white"
+    return settle_background(_load(name, data_root, downscale, splits, white_background, builtin_resolution,
+                                   cache_dir, llff_factor, llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc),
+                             background)
+
+
+def _load(name, data_root, downscale, splits, white_background, builtin_resolution, cache_dir, llff_factor,
+          llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc) -> Scene:
+    """:func:`load_scene` before the background is settled."""
     root = data_root_from(data_root)
     hit = find_dataset(name, root)
     if hit:

@@ -77,6 +77,7 @@ class Scene:
     ray_space: RaySpace = RaySpace()  # ray map, box and marching bounds (default: Blender's, world units)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     root: str = ""  # folder it was read from
+    background_note: str = ""  # how the background was chosen, one line for the run (warpnerf.data.background)
 
     # The box and bounds are the ray space's: one place, so they cannot disagree with it.
     @property

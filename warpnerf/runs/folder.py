@@ -274,7 +274,7 @@ def load_scene_for(cfg: TrainConfig, progress: bool = True):
     """The scene ``cfg`` trains on (name, data root, downscale, ...), loaded or generated."""
     return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
                       builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
-                      unbounded=cfg.unbounded, ndc=cfg.ndc, llff_test=cfg.llff_test)
+                      unbounded=cfg.unbounded, ndc=cfg.ndc, llff_test=cfg.llff_test, background=cfg.background)
 
 
 def resolve_data_root(cfg: TrainConfig) -> None:

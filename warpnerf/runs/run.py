@@ -233,6 +233,8 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
     framing = getattr(getattr(scene, "normalization", None), "framing", "")
     if framing:  # a capture's world was mapped from its rig: say how (warpnerf.data.normalize)
         print(f"framing: {framing}")
+    if scene.background_note:  # images without alpha: what stands behind the field (warpnerf.data.background)
+        print(f"background: {scene.background_note}")
     print(after_training_line(cfg, eval_view_count(trainer)))
     if progress:
         print(progress_legend(cfg))

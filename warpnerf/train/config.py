@@ -106,7 +106,8 @@ class TrainConfig:
     lr_final_ratio: float = 0.1  # exponential decay of lr to lr * ratio at the last step
     lr_warmup: int = 100  # steps of linear lr warm-up from 1 % of lr (nerfacc), at most iters // 10; keeps thin scenes stable
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on the ray space's t (0 = off); concentrates each ray's weight, removing haze
-    random_background: bool = True  # train against random per-ray backgrounds (instant-ngp); photos (LLFF, captures) count as opaque
+    background: Optional[str] = None  # auto (unset) | white | black | learned | random: images without alpha whose border is one uniform colour (a product shot on white, a render saved as RGB) train against it as a fixed background (auto); white/black fix it (images with alpha are composited on it); learned learns it; random keeps opaque photos (warpnerf.data.background)
+    random_background: bool = True  # train against random per-ray backgrounds (instant-ngp) where the images' alpha is known; photos without a detected background (LLFF, captures) count as opaque
     background_low: float = 0.0  # random backgrounds draw each channel from U[background_low, 1]; > 0 keeps them light (closer to a white scene background)
     background_late_from: float = 1.0  # from this fraction of the steps on, random backgrounds draw from U[background_low_late, 1] instead (1 = never)
     background_low_late: float = 1.0  # the low bound after background_late_from (1 = white, the NeRF-synthetic background)
@@ -203,6 +204,7 @@ CHOICES: dict[str, Sequence] = {
     "log": LOG_MODES,
     "pose_init": POSE_INITS,
     "llff_test": Registry("warpnerf.data.llff", "LLFF_TESTS"),
+    "background": Registry("warpnerf.data.background", "BACKGROUNDS"),
 }
 
 
@@ -270,7 +272,7 @@ def _coerce(name: str, value: Any, source: str) -> Any:
 
 def check_choice(name: str, value: Any) -> None:
     """Raise ConfigError unless ``value`` is one of :data:`CHOICES`'s names for field ``name``."""
-    if name in CHOICES and value not in CHOICES[name]:
+    if name in CHOICES and value not in CHOICES[name] and not (value is None and field_type(name)[1]):
         raise ConfigError(f"unknown {name} '{value}': {name} must be one of {', '.join(CHOICES[name])}")
 
 
@@ -401,6 +403,9 @@ def validate(cfg: TrainConfig) -> None:
         raise ConfigError(f"g2fr_beta must be in (0, 1], got {cfg.g2fr_beta}")
     if cfg.downscale < 1:
         raise ConfigError(f"downscale must be >= 1, got {cfg.downscale}")
+    if cfg.background == "random" and not cfg.random_background:
+        raise ConfigError("background random needs random_background on (--random-background), or choose another "
+                          "--background")
     if cfg.ndc and cfg.unbounded:
         raise ConfigError("ndc and unbounded are both on: a scene has one ray space (NDC or contracted); drop one")
     if cfg.lr_warmup < 0:
