@@ -38,8 +38,9 @@ from warpnerf.train.views import training_cameras
 DEFAULT_THRESHOLD = 10.0
 
 # Connected pieces of the mesh with fewer faces are floaters and are dropped (``--min-component-faces``).
-# The lego at 256^3 had 1,063 pieces, 1,053 of them under 100 faces; a real part at that resolution
-# (a stud of the lego) has hundreds. The largest piece is always kept.
+# On the lego at 256^3 nearly every piece is under 100 faces (records lego_full_mesh and
+# lego_full_mesh_keep_floaters, docs/results.md); a real part at that resolution (a stud of the lego)
+# has hundreds. The largest piece is always kept.
 DEFAULT_MIN_COMPONENT_FACES = 100
 
 
