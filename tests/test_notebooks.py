@@ -63,9 +63,9 @@ def _printed(cell) -> str:
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
-def test_notebook_runs_in_fast_mode(path, monkeypatch):
-    monkeypatch.delenv("WARPNERF_NB_RUN", raising=False)  # notebook 4 trains its own tiny run
-    _execute(path, monkeypatch)
+def test_notebook_runs_in_fast_mode(path, monkeypatch, tmp_path):
+    monkeypatch.delenv("WARPNERF_NB_RUN", raising=False)  # notebook 4 trains its own tiny run,
+    _execute(path, monkeypatch, TMPDIR=str(tmp_path))  # in a temporary folder under pytest's
 
 
 def test_trained_run_notebook_reads_a_given_run(chair_run, monkeypatch):
