@@ -177,7 +177,7 @@ def after_training_line(cfg: TrainConfig, n_eval: int) -> str:
     """The banner's second line: what runs after the training bar ends, and the flags that shorten it."""
     views = f"{n_eval} {cfg.eval_split} view{'s' if n_eval != 1 else ''} (--eval-max-views N renders fewer)"
     refine = (f", their poses refined first ({cfg.pose_refine_steps} steps)"
-              if cfg.task == "pose" and cfg.pose_refine_steps > 0 else "")
+              if (cfg.task == "pose" or cfg.refine_test_poses) and cfg.pose_refine_steps > 0 else "")
     video = (f"a {cfg.video_frames}-frame turntable video (--video-frames 0 skips it)" if cfg.video_frames > 0
              else "no video (--video-frames 0)")
     return f"after training: evaluation on {views}{refine}; {video}"

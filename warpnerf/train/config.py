@@ -160,6 +160,7 @@ class TrainConfig:
     pose_lr_final: float = 1e-5  # pose: lr at the last step (exponential)
     pose_lr_by_noise: bool = True  # pose: scale both rates by min(max(noise sigmas) / 0.15, 1), 0.15 being the sigma they are tuned at (Adam moves ~lr per step)
     pose_refine_steps: int = 100  # pose: photometric refinement steps per test view at evaluation
+    refine_test_poses: bool = False  # full/fewshot: refine the test views' poses photometrically before evaluation, as task pose always does (pose_refine_steps steps, pose_lr to pose_lr_final): for a capture's held-out photos compared with a pose run on them
     pose_reregister_at: float = 0.0  # pose: at this fraction of the run, search again for views left in a wrong basin (warpnerf.train.reregister; not in the paper); 0 = off
     pose_reregister_passes: int = 2  # pose: search up to this many times, at pose_reregister_at, 2x, ... of the run (views that only stand out once the field is sharp); passes past the run's end are dropped
     pose_reregister_ratio: float = 5.0  # pose: the views searched for are those whose photometric loss exceeds this x the median view's (docs/studies/2026-12-07-mic-reregistration.md)

@@ -60,8 +60,12 @@ class Task:
         return {}
 
     def eval_poses(self, trainer: "Trainer", views: Views) -> torch.Tensor:
-        """(N, 3, 4) poses to render the evaluation views from."""
-        return views.c2w.to(trainer.device)
+        """(N, 3, 4) poses to render the evaluation views from: their known poses, refined photometrically
+        first with ``refine_test_poses`` (a capture's held-out photos carry COLMAP's errors too)."""
+        c2w = views.c2w.to(trainer.device)
+        if self.cfg.refine_test_poses and self.cfg.pose_refine_steps > 0:
+            return refine_poses(trainer, c2w, views)
+        return c2w
 
     def metrics(self, trainer: "Trainer") -> dict:
         return {}
