@@ -42,6 +42,12 @@ def test_pose_noise_default_follows_the_paper_by_scene_kind(kind, sigma):
         task.setup(trainer)
         assert task.optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * scale)
     assert PoseTask(TrainConfig(task="pose", pose_noise=0.05, pose_noise_rot=0.02)).noise_sigmas(scene) == (0.02, 0.05)
+    # --pose-noise 0 (refining a capture's COLMAP poses): the poses start where they are given and are refined
+    # at the real-scene sigma's rates; scaled by the noise itself, the rates were 0 and nothing moved
+    task = PoseTask(TrainConfig(task="pose", pose_lr=3e-3, pose_noise=0.0))
+    task.setup(trainer)
+    assert torch.equal(task.noisy_c2w, trainer.train_c2w)
+    assert task.optimizer.param_groups[0]["lr"] == pytest.approx(3e-3 * 0.01 / 0.15)
 
 
 def test_pose_on_a_forward_facing_scene_has_a_one_line_caveat():

@@ -135,7 +135,8 @@ class FewShotTask(Task):
         return scene.train.subset([pos[i] for i in ids])
 
 
-NOISE_SIGMA_SYNTHETIC = 0.15  # BARF's / the paper's pose noise on synthetic scenes (0.01 on real ones)
+NOISE_SIGMA_SYNTHETIC = 0.15  # BARF's / the paper's pose noise on synthetic scenes
+NOISE_SIGMA_REAL = 0.01  # the paper's pose noise on real scenes (MipNeRF-360)
 
 
 def identity_poses(n: int, dtype: torch.dtype, device) -> torch.Tensor:
@@ -197,7 +198,7 @@ class PoseTask(Task):
 
     def noise_sigmas(self, scene: Scene) -> tuple[float, float]:
         # the paper's settings: 0.15 on synthetic scenes, 0.01 on real captures (LLFF, COLMAP, transforms.json)
-        default = NOISE_SIGMA_SYNTHETIC if scene.kind == "blender" else 0.01
+        default = NOISE_SIGMA_SYNTHETIC if scene.kind == "blender" else NOISE_SIGMA_REAL
         base = self.cfg.pose_noise if self.cfg.pose_noise is not None else default
         rot = self.cfg.pose_noise_rot if self.cfg.pose_noise_rot is not None else base
         trans = self.cfg.pose_noise_trans if self.cfg.pose_noise_trans is not None else base
@@ -221,8 +222,11 @@ class PoseTask(Task):
         # sigma = 0.15 throws poses with sigma = 0.01 far off while the field is still blurry
         # (garden, 3e-3: 0.94 deg at step 0, 5.4 deg at step 130); scale it with the noise. From the
         # average pose the cameras start as far off as the rig is wide: BARF's rates, unscaled.
+        # With no noise (--pose-noise 0: refining a capture's COLMAP poses, whose errors are unknown but
+        # small), the rates are scaled as for the paper's real-scene sigma, not to zero (no refinement).
         by_noise = self.cfg.pose_lr_by_noise and self.cfg.pose_init == "noise"
-        self.lr_scale = min(max(rot, trans) / NOISE_SIGMA_SYNTHETIC, 1.0) if by_noise else 1.0
+        sigma = max(rot, trans) or NOISE_SIGMA_REAL
+        self.lr_scale = min(sigma / NOISE_SIGMA_SYNTHETIC, 1.0) if by_noise else 1.0
         self.optimizer = torch.optim.Adam(self.correction.parameters(), lr=self.cfg.pose_lr * self.lr_scale)
         init = evaluate_poses(self.noisy_c2w, self.gt_c2w, self.alignment)
         self.initial = {k: init[k] for k in ("rot_err_deg", "trans_err_x100", "centre_err_x100", "rot_err_deg_unaligned")}
