@@ -3,6 +3,7 @@ the rendering cameras; failures say how many images registered."""
 
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -41,9 +42,10 @@ def test_garden_render_is_textured_everywhere():
     assert rgb.std() > 0.1
 
 
-def test_process_registers_every_rendered_photo_and_recovers_the_poses(tmp_path):
+def test_process_registers_every_rendered_photo_and_recovers_the_poses(tmp_path, capsys):
     pytest.importorskip("pycolmap")
     from warpnerf.geometry.cameras import evaluate_poses
+    from warpnerf.geometry.rig import classify_rig
 
     c2w = garden_cameras()
     assert len(c2w) >= 30
@@ -62,6 +64,17 @@ def test_process_registers_every_rendered_photo_and_recovers_the_poses(tmp_path)
     # measured: mean 0.24°, worst view 0.40° with the focal length estimated by COLMAP
     assert ev["rot_err_deg"] <= 0.5
     assert max(ev["rot_err_deg_per_view"]) <= 1.0
+    # the summary: how many registered, the mean reprojection error, and the rig of the registered cameras
+    out_lines = capsys.readouterr().out.splitlines()
+    summary = next(ln for ln in out_lines if ln.startswith("registered "))
+    print(summary)
+    assert summary.startswith(f"registered {len(c2w)} of {len(c2w)} images")
+    err = float(re.search(r"mean reprojection error (\S+) px", summary).group(1))
+    assert math.isfinite(err) and 0 < err < 2.0  # sub-pixel-ish on clean renders; NaN/0 would mean no points
+    rig = classify_rig(est.numpy())  # the cameras the loader read back from what process wrote
+    assert rig.kind == "object"  # two rings looking at the chair
+    assert re.search(r"rig (\S+),", summary).group(1) == rig.kind
+    assert any(ln.startswith("rig: object-centric:") for ln in out_lines)
 
 
 def test_mapping_failure_says_how_many_registered(tmp_path):
@@ -91,26 +104,54 @@ def test_process_bad_input_is_one_line(tmp_path, capsys):
 # --- --out: new, empty, or an earlier process output re-made with --overwrite (issue #64) ---------------
 
 
+class FakeColmap:
+    """What the fake pycolmap did: ``calls`` [(matcher, extract)], and what each matcher registers
+    (``registers[matcher]``: the fraction of the photos, the first ones by name)."""
+
+    def __init__(self):
+        self.calls = []
+        self.registers = {"exhaustive": 1.0, "sequential": 1.0}
+
+
 @pytest.fixture
 def fake_colmap(monkeypatch):
-    """Mapping that registers every photo and writes a one-file model, in no time."""
+    """Mapping that registers the photos (all by default; see FakeColmap) and writes a model of them as
+    cameras on a ring looking at the origin, in no time."""
     import warpnerf.data.process as proc
+    from warpnerf.data import colmap as cm
+
+    fake = FakeColmap()
 
     class Rec:
-        def __init__(self, n):
-            self.n = n
+        def __init__(self, names):
+            self.names = names
 
         def num_reg_images(self):
-            return self.n
+            return len(self.names)
 
         def num_points3D(self):
             return 0
 
+        def compute_mean_reprojection_error(self):
+            return 0.5
+
         def write(self, folder):
-            open(os.path.join(folder, "images.bin"), "w").close()
+            az = np.linspace(0, 2 * np.pi, len(self.names), endpoint=False)
+            eyes = np.stack([4 * np.cos(az), 4 * np.sin(az), np.full_like(az, 1.5)], axis=1)
+            cams = {1: cm.Camera(1, "PINHOLE", 8, 8, np.array([8.0, 8.0, 4.0, 4.0]))}
+            imgs = {}
+            for k, (name, pose) in enumerate(zip(self.names, builtin.look_at(eyes)), start=1):
+                q, t = cm.c2w_to_colmap(pose)
+                imgs[k] = cm.Image(k, q, t, 1, name)
+            cm.write_model(folder, cams, imgs, {})
+
+    def run(img_dir, db, models, names, camera_model, camera_params, single_camera, matcher, *a, extract=True):
+        fake.calls.append((matcher, extract))
+        return Rec(names[: int(fake.registers[matcher] * len(names))])
 
     monkeypatch.setattr(proc, "backend", lambda: "pycolmap")
-    monkeypatch.setattr(proc, "_run_pycolmap", lambda img_dir, db, models, names, *a: Rec(len(names)))
+    monkeypatch.setattr(proc, "_run_pycolmap", run)
+    return fake
 
 
 def photos(folder, names=("a.png", "b.png", "c.png")):
@@ -166,6 +207,7 @@ def test_process_remakes_its_own_output_only_with_overwrite(tmp_path, capsys, fa
     assert process(tmp_path, out, "--overwrite", images=str(tmp_path / "other")) == 0
     assert sorted(os.listdir(out / "images")) == ["x.png", "y.png", "z.png"]  # the earlier photos went with their model
     assert os.path.isfile(out / "sparse" / "0" / "images.bin")
+    assert len(load_colmap(str(out), normalize=False).image_names) == 3
 
 
 def test_process_in_place_and_into_an_empty_folder(tmp_path, fake_colmap):
@@ -176,6 +218,78 @@ def test_process_in_place_and_into_an_empty_folder(tmp_path, fake_colmap):
     photos(tmp_path / "photos")
     (tmp_path / "empty").mkdir()
     assert process(tmp_path, tmp_path / "empty") == 0
+
+
+# --- what process tells the user: the rig, the matching, a poor registration (issue #63) ------------------
+
+
+@pytest.mark.parametrize("flag", ["--matching", "--matcher"])
+def test_matching_flag_and_its_old_name_parse(flag):
+    import argparse
+
+    from warpnerf.data.process import add_parser
+
+    p = add_parser(argparse.ArgumentParser().add_subparsers())
+    assert p.parse_args(["--images", "x", "--out", "y", flag, "sequential"]).matcher == "sequential"
+    assert p.parse_args(["--images", "x", "--out", "y"]).matcher is None
+    with pytest.raises(SystemExit):
+        p.parse_args(["--images", "x", "--out", "y", flag, "vocab"])
+    assert "--matcher is the same flag" in " ".join(p.format_help().split())
+
+
+def test_summary_names_the_rig_and_the_reprojection_error(tmp_path, capsys, fake_colmap):
+    photos(tmp_path / "photos", names=[f"p{k}.png" for k in range(6)])
+    assert process(tmp_path, tmp_path / "out") == 0
+    cap = capsys.readouterr()
+    assert fake_colmap.calls == [("exhaustive", True)]
+    assert cap.err == ""  # everything registered: no warning
+    lines = cap.out.splitlines()
+    assert re.fullmatch(r"registered 6 of 6 images, 0 points, mean reprojection error 0\.50 px, rig object, "
+                        r"[0-9.]+ s \(pycolmap, exhaustive matching\)", lines[0]), lines[0]
+    assert lines[1].startswith("rig: object-centric: 6 cameras look at one point")
+
+
+def test_poor_sequential_matching_falls_back_to_exhaustive(tmp_path, capsys, fake_colmap):
+    from warpnerf.data.colmap import read_colmap_poses
+
+    photos(tmp_path / "photos", names=[f"p{k}.png" for k in range(10)])
+    fake_colmap.registers = {"sequential": 0.5, "exhaustive": 0.9}
+    assert process(tmp_path, tmp_path / "out", "--matching", "sequential") == 0
+    cap = capsys.readouterr()
+    assert fake_colmap.calls == [("sequential", True), ("exhaustive", False)]  # the same features, matched again
+    assert cap.err.splitlines() == [
+        "warpnerf process: sequential matching registered 5 of 10 images (under 80 %): matching exhaustively once "
+        "and keeping the better model",
+        "warpnerf process: 9 of 10 images registered; the others are left out"]
+    assert cap.out.startswith("registered 9 of 10 images") and "(pycolmap, exhaustive matching)" in cap.out
+    assert len(read_colmap_poses(str(tmp_path / "out"))) == 9  # the exhaustive model was written
+
+
+def test_fallback_keeps_the_better_model_and_warns_under_80_percent(tmp_path, capsys, fake_colmap):
+    from warpnerf.data.colmap import read_colmap_poses
+
+    photos(tmp_path / "photos", names=[f"p{k}.png" for k in range(10)])
+    fake_colmap.registers = {"sequential": 0.6, "exhaustive": 0.4}  # exhaustive does worse: sequential's stays
+    assert process(tmp_path, tmp_path / "out", "--matcher", "sequential") == 0
+    cap = capsys.readouterr()
+    assert fake_colmap.calls == [("sequential", True), ("exhaustive", False)]
+    err = cap.err.splitlines()
+    assert len(err) == 2 and "matching exhaustively once" in err[0]
+    assert err[1].startswith("warpnerf process: warning: only 6 of 10 images registered (60 %, under 80 %)")
+    assert "--matching exhaustive (tried after sequential)" in err[1] and "more overlap" in err[1]
+    assert cap.out.startswith("registered 6 of 10 images") and "(pycolmap, sequential matching)" in cap.out
+    assert len(read_colmap_poses(str(tmp_path / "out"))) == 6
+
+
+def test_exhaustive_matching_is_not_rerun_and_warns(tmp_path, capsys, fake_colmap):
+    photos(tmp_path / "photos", names=[f"p{k}.png" for k in range(10)])
+    fake_colmap.registers["exhaustive"] = 0.7
+    assert process(tmp_path, tmp_path / "out") == 0
+    cap = capsys.readouterr()
+    assert fake_colmap.calls == [("exhaustive", True)]
+    err = cap.err.splitlines()
+    assert len(err) == 1 and "only 7 of 10 images registered (70 %, under 80 %) with --matching exhaustive;" in err[0]
+    assert "tried after" not in err[0] and "more overlap" in err[0]
 
 
 # --- --video: the sharpest frame of each window, then the photo pipeline (issue #65) ----------------------

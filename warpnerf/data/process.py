@@ -23,7 +23,14 @@ is refused before a file is written.
 
 Mapping that registers fewer than ``min_registered`` images is an error saying how many
 registered; a partial registration is reported on stderr and the dataset is still written
-(unregistered photos are left out of the model, so the loader skips them).
+(unregistered photos are left out of the model, so the loader skips them). When sequential matching
+registers under :data:`REGISTERED_WARN` of the photos, matching is re-run exhaustively once on the same
+features (said in one line) and the reconstruction that registers more images is kept; under that
+fraction in the end, a one-line warning names what to try.
+
+The result also gives the model's mean reprojection error (pixels) and the rig the registered cameras
+form (:func:`warpnerf.geometry.rig.classify_rig`: object, forward-facing or 360, with its reason), read
+back from the written model as the COLMAP loader reads it.
 """
 
 from __future__ import annotations
@@ -47,6 +54,10 @@ MAX_DOWNSCALES = 3  # images_2, images_4, images_8
 # what process writes in DATASET (besides the marker)
 OUTPUTS = ("images", "sparse", "colmap") + tuple(f"images_{2 ** k}" for k in range(1, MAX_DOWNSCALES + 1))
 DEFAULT_NUM_FRAMES = 100  # --video: frames kept (one per window of consecutive frames)
+MATCHERS = ("exhaustive", "sequential")
+# under this fraction of the photos registered: sequential matching falls back to exhaustive, then a warning
+# (nerfstudio warns likewise when few images register)
+REGISTERED_WARN = 0.8
 
 
 def list_images(folder: str) -> list[str]:
@@ -243,12 +254,14 @@ def process_images(
         overwrite: re-make ``out`` when it is an earlier output of this command (see :func:`check_out`).
         num_downscales: also write ``images_2``, ``images_4``, ... (that many; 0: none).
 
-    Returns {"images": N, "registered": M, "points": P, "seconds": t, "backend": name}.
+    Returns {"images": N, "registered": M, "points": P, "reprojection_error": mean px, "rig": kind,
+    "rig_reason": one line, "matching": matcher of the kept model, "fallback": exhaustive re-run or not,
+    "seconds": t, "backend": name}.
     """
     if camera_model not in CAMERA_MODELS:
         raise DatasetError(f"--camera-model {camera_model} is not one warpnerf loads ({', '.join(CAMERA_MODELS)})")
-    if matcher not in ("exhaustive", "sequential"):
-        raise DatasetError(f"--matcher must be exhaustive or sequential, got {matcher}")
+    if matcher not in MATCHERS:
+        raise DatasetError(f"--matching must be exhaustive or sequential, got {matcher}")
     if not 0 <= num_downscales <= MAX_DOWNSCALES:
         raise DatasetError(f"--num-downscales must be 0..{MAX_DOWNSCALES}, got {num_downscales}")
     names = list_images(images)
@@ -270,35 +283,64 @@ def process_images(
     shutil.rmtree(models, ignore_errors=True)
     os.makedirs(models)
 
-    bar = tqdm(total=3 + len(names), desc="colmap: features", unit="step", disable=not progress, dynamic_ncols=True)
-    with bar:
-        if which == "pycolmap":
-            rec = _run_pycolmap(img_out, db, models, names, camera_model, camera_params, single_camera, matcher,
-                                max_image_size, threads, seed, bar)
-            registered = rec.num_reg_images() if rec is not None else 0
-            n_points = rec.num_points3D() if rec is not None else 0
-            if registered >= min_registered:
-                sparse = os.path.join(out, "sparse", "0")
-                shutil.rmtree(sparse, ignore_errors=True)
-                os.makedirs(sparse)
-                rec.write(sparse)
-        else:
-            registered, n_points = _run_colmap_program(img_out, db, models, out, camera_model, camera_params,
-                                                       single_camera, matcher, max_image_size, bar)
+    def reconstruct(how: str, extract: bool, sub: str) -> dict:
+        """One pass of matching (``how``) and mapping into ``models/sub``; features extracted first if ``extract``."""
+        folder = os.path.join(models, sub)
+        os.makedirs(folder)
+        bar = tqdm(total=3 + len(names), desc="colmap: features" if extract else "colmap: matching", unit="step",
+                   disable=not progress, dynamic_ncols=True)
+        with bar:
+            if which == "pycolmap":
+                rec = _run_pycolmap(img_out, db, folder, names, camera_model, camera_params, single_camera, how,
+                                    max_image_size, threads, seed, bar, extract=extract)
+                if rec is None:
+                    return {"registered": 0, "points": 0, "error": float("nan"), "write": None, "matching": how}
+                return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()),
+                        "error": float(rec.compute_mean_reprojection_error()), "write": rec.write, "matching": how}
+            return _run_colmap_program(img_out, db, folder, camera_model, camera_params, single_camera, how,
+                                       max_image_size, bar, extract=extract) | {"matching": how}
+
+    best = reconstruct(matcher, True, "0")
+    fallback = matcher == "sequential" and best["registered"] < REGISTERED_WARN * len(names)
+    if fallback:
+        print(f"warpnerf process: sequential matching registered {best['registered']} of {len(names)} images "
+              f"(under {100 * REGISTERED_WARN:.0f} %): matching exhaustively once and keeping the better model", file=sys.stderr)
+        again = reconstruct("exhaustive", False, "1")
+        if again["registered"] > best["registered"]:
+            best = again
+    registered = best["registered"]
     if registered < min_registered:
         raise DatasetError(
             f"COLMAP mapping failed: {registered} of {len(names)} images in {images} registered (need {min_registered}); "
             "photos need overlap (each point seen from several views) and texture"
         )
-    if registered < len(names):
+    sparse = os.path.join(out, "sparse", "0")
+    shutil.rmtree(sparse, ignore_errors=True)
+    os.makedirs(sparse)
+    best["write"](sparse)
+    if registered < REGISTERED_WARN * len(names):
+        # sequential matching has fallen back to exhaustive by now: what is left to try is the photos
+        print(f"warpnerf process: warning: only {registered} of {len(names)} images registered "
+              f"({100 * registered / len(names):.0f} %, under {100 * REGISTERED_WARN:.0f} %) with --matching exhaustive"
+              f"{' (tried after sequential)' if fallback else ''}; the others are left out: retake with more overlap "
+              "between neighbouring photos (each part of the scene in 3+ views) and more texture", file=sys.stderr)
+    elif registered < len(names):
         print(f"warpnerf process: {registered} of {len(names)} images registered; the others are left out", file=sys.stderr)
+    from warpnerf.data.colmap import read_colmap_poses  # lazy: the COLMAP reader stays out of --help
+    from warpnerf.geometry.rig import classify_rig  # lazy: only a finished reconstruction is classified
+
+    rig = classify_rig(read_colmap_poses(out))  # the registered cameras, converted as the loader converts them
     write_downscaled(out, num_downscales)
-    return {"images": len(names), "registered": int(registered), "points": int(n_points),
+    return {"images": len(names), "registered": int(registered), "points": int(best["points"]),
+            "reprojection_error": float(best["error"]), "rig": rig.kind, "rig_reason": rig.reason,
+            "matching": best["matching"], "fallback": fallback,
             "seconds": round(time.time() - t0, 1), "backend": which}
 
 
 def _run_pycolmap(img_dir, db, models, names, camera_model, camera_params, single_camera, matcher, max_image_size,
-                  threads, seed, bar):
+                  threads, seed, bar, extract=True):
+    """Features (when ``extract``; else those in ``db``), ``matcher`` matching and mapping into ``models``:
+    the reconstruction that registers most images, or None."""
     import pycolmap  # optional extra: warpnerf[colmap]
 
     reader = pycolmap.ImageReaderOptions()
@@ -310,8 +352,9 @@ def _run_pycolmap(img_dir, db, models, names, camera_model, camera_params, singl
     extraction.num_threads = threads
     extraction.use_gpu = False
     mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
-    pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    if extract:
+        pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
     bar.update(1)
     bar.set_description("colmap: matching")
     matching = pycolmap.FeatureMatchingOptions()
@@ -340,7 +383,10 @@ def _run_pycolmap(img_dir, db, models, names, camera_model, camera_params, singl
     return max(recs.values(), key=lambda r: r.num_reg_images())
 
 
-def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, single_camera, matcher, max_image_size, bar):
+def _run_colmap_program(img_dir, db, models, camera_model, camera_params, single_camera, matcher, max_image_size, bar,
+                        extract=True):
+    """As :func:`_run_pycolmap` through the ``colmap`` program: {"registered", "points", "error" (mean
+    reprojection error, px), "write" (copies the largest model into a folder, None without one)}."""
     def run(*args):
         proc = subprocess.run(["colmap", *args], capture_output=True, text=True)
         if proc.returncode != 0:
@@ -348,9 +394,10 @@ def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, s
             raise DatasetError(f"colmap {args[0]} failed (exit {proc.returncode}): {tail[0]}")
 
     extra = ["--ImageReader.camera_params", camera_params] if camera_params else []
-    run("feature_extractor", "--database_path", db, "--image_path", img_dir, "--ImageReader.camera_model", camera_model,
-        "--ImageReader.single_camera", str(int(single_camera)), "--SiftExtraction.use_gpu", "0",
-        "--SiftExtraction.max_image_size", str(max_image_size), *extra)
+    if extract:
+        run("feature_extractor", "--database_path", db, "--image_path", img_dir, "--ImageReader.camera_model", camera_model,
+            "--ImageReader.single_camera", str(int(single_camera)), "--SiftExtraction.use_gpu", "0",
+            "--SiftExtraction.max_image_size", str(max_image_size), *extra)
     bar.update(1)
     run(f"{matcher}_matcher", "--database_path", db, "--SiftMatching.use_gpu", "0")
     bar.update(1)
@@ -358,20 +405,19 @@ def _run_colmap_program(img_dir, db, models, out, camera_model, camera_params, s
     bar.update(bar.total - bar.n)
     from warpnerf.data.colmap import read_model  # lazy: the COLMAP reader stays out of --help
 
-    best, best_n, best_pts = None, 0, 0
+    best = {"registered": 0, "points": 0, "error": float("nan"), "write": None}
     for sub in sorted(os.listdir(models)):
         folder = os.path.join(models, sub)
         try:
             _, imgs, pts = read_model(folder)
         except DatasetError:
             continue
-        if len(imgs) > best_n:
-            best, best_n, best_pts = folder, len(imgs), len(pts)
-    if best is not None:
-        sparse = os.path.join(out, "sparse", "0")
-        shutil.rmtree(sparse, ignore_errors=True)
-        shutil.copytree(best, sparse)
-    return best_n, best_pts
+        if len(imgs) > best["registered"]:
+            obs = sum(len(p.image_ids) for p in pts.values())  # COLMAP's mean: over observations
+            err = sum(p.error * len(p.image_ids) for p in pts.values()) / obs if obs else float("nan")
+            best = {"registered": len(imgs), "points": len(pts), "error": err,
+                    "write": lambda dst, src=folder: shutil.copytree(src, dst, dirs_exist_ok=True)}
+    return best
 
 
 # ---- CLI ----------------------------------------------------------------------------------------
@@ -388,8 +434,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS)
     p.add_argument("--camera-params", default=None, help="known intrinsics, COLMAP order, comma-separated (kept fixed)")
     p.add_argument("--per-image-camera", action="store_true", help="estimate a camera per photo (mixed devices/zoom)")
-    p.add_argument("--matcher", default=None, choices=("exhaustive", "sequential"),
-                   help="default: sequential for --video, exhaustive for --images")
+    p.add_argument("--matching", "--matcher", dest="matcher", default=None, choices=MATCHERS,
+                   help="feature matching (--matcher is the same flag); default: sequential for --video, exhaustive "
+                        f"for --images; sequential registering under {100 * REGISTERED_WARN:.0f} %% of the images is re-run "
+                        "exhaustively once")
     p.add_argument("--max-image-size", type=int, default=1600)
     p.add_argument("--num-downscales", type=int, default=2,
                    help=f"also write images_2, images_4, ... (that many, 0..{MAX_DOWNSCALES}; 0: none)")
@@ -410,7 +458,9 @@ def run(args) -> int:
     else:
         res = process_images(args.images, args.out, matcher=args.matcher or "exhaustive", **opts)
     print(f"registered {res['registered']} of {res['images']} images, {res['points']} points, "
-          f"{res['seconds']} s ({res['backend']})")
+          f"mean reprojection error {res['reprojection_error']:.2f} px, rig {res['rig']}, "
+          f"{res['seconds']} s ({res['backend']}, {res['matching']} matching)")
+    print(f"rig: {res['rig_reason']}")
     print(f"dataset: {os.path.abspath(args.out)}  (train with: warpnerf train --scene {os.path.basename(os.path.normpath(args.out))} "
           f"--data-root {os.path.dirname(os.path.abspath(args.out))})")
     return 0
