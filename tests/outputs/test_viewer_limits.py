@@ -91,17 +91,37 @@ def test_one_render_per_client_newer_requests_replace_older():
 
 
 class _FakeViewer:
-    run_dir, step, renders = "run", 0, 0
+    """What serve() asks of a RunViewer, without a run."""
+
+    run_dir, step, renders, preview_height, max_height = "run", 0, 0, 32, 1080
 
     def __init__(self):
-        self.trainer = SimpleNamespace(train_c2w=torch.eye(4)[:3].expand(2, 3, 4).clone(),
-                                       views=SimpleNamespace(height=32, focal=40.0))
+        self.trainer = SimpleNamespace(cfg=SimpleNamespace(scene="fake", task="full", iters=1, g2fr=False))
 
     def initial_camera(self):
         return torch.eye(4)[:3] + torch.tensor([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 4.0]])
 
     def look_at(self):
         return np.zeros(3)
+
+    def up_direction(self):
+        return np.array([0.0, 1.0, 0.0])
+
+    def initial_fov(self):
+        return 0.8
+
+    def camera_sets(self):
+        from warpnerf.outputs.viewer import CameraSet
+
+        return {"train": CameraSet("training cameras", self.initial_camera()[None], 0.8, 1.0, (40, 90, 220))}
+
+    def run_level_weights(self):
+        return None
+
+    def training_state(self):
+        from warpnerf.outputs.viewer import TrainingState
+
+        return TrainingState(False, False, False, True, "finished")
 
     def reload_if_changed(self):
         return False

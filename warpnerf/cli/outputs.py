@@ -62,7 +62,10 @@ def add_output_commands(sub) -> None:
     _run_args(v)
     v.add_argument("--host", default="127.0.0.1", help="interface to serve on (0.0.0.0: reachable from other machines)")
     v.add_argument("--port", type=int, default=8080)
-    v.add_argument("--preview-height", type=int, default=160, help="rendered image height, pixels")
+    v.add_argument("--preview-height", type=int, default=None,
+                   help="full render height in pixels, once the view is still (the window's, if smaller; while "
+                        "it moves: a quarter of it); the panel's max height starts here. Default: the window's "
+                        "height on a GPU, 160 on a CPU")
     v.add_argument("--max-size", default="1920x1080",
                    help="WIDTHxHEIGHT no render exceeds, whatever canvas a browser reports (aspect kept)")
     v.add_argument("--max-pixels", type=int, default=1920 * 1080, help="pixel budget of one render")
@@ -164,7 +167,7 @@ def cmd_view(args) -> int:
         max_size = parse_size(args.max_size)
     except ValueError as e:
         raise UserError(str(e)) from None
-    if args.max_pixels < 256 or not 1 <= args.preview_height <= max_size[1]:
+    if args.max_pixels < 256 or not (args.preview_height is None or 1 <= args.preview_height <= max_size[1]):
         raise UserError(f"need --max-pixels >= 256 and 1 <= --preview-height <= {max_size[1]} (--max-size height)")
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port {args.port}: must be 0..65535")

@@ -35,6 +35,7 @@ from warpnerf.train.config import ConfigError, TrainConfig, forward_facing_prese
 from warpnerf.train.evaluate import eval_view_count, evaluate, write_json
 from warpnerf.train.metrics import configure_lpips
 from warpnerf.train.monitor import Monitor, heldout_split
+from warpnerf.train.pause import wait_while_paused
 from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer, TrainingError, peak_rss_mb, start_memory_window
 
@@ -258,8 +259,13 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
 
     def on_step_end(n_done: int) -> None:
         _fault(f"step:{n_done}")
-        if stop or checkpoint_due(n_done):
+        saved = bool(stop) or checkpoint_due(n_done)
+        if saved:
             save()
+        if not stop and n_done < cfg.iters:  # RUN/PAUSE (warpnerf view's Pause): wait here, checkpoint saved;
+            # fit counts this call's time in the next step's: take the wait back out of train_seconds
+            trainer.train_seconds -= wait_while_paused(out_dir, n_done, on_pause=None if saved else save,
+                                                       should_stop=lambda: bool(stop))
         if stop:
             raise TrainingInterrupted(f"interrupted at step {n_done}; checkpoint saved to {ckpt_path}; "
                                       f"continue with: warpnerf train --resume {out_dir}", step=n_done)
