@@ -593,8 +593,24 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
 
     if not ray.is_initialized():
         ray.init(address=address, log_to_driver=True)
-        with contextlib.suppress(ValueError):  # not the main thread; run_sweep restores the old handler
-            signal.signal(signal.SIGTERM, _raise_interrupt)  # ray.init's handler exits at once: stop as on SIGINT
+    # SIGINT/SIGTERM only note the signal here; the loop below acts on it within a second. A KeyboardInterrupt
+    # raised inside Ray's blocking calls can be swallowed there (a CI run lost a SIGINT that way), and
+    # ray.init's own SIGTERM handler exits at once.
+    signals: list[int] = []
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(ValueError):  # not the main thread: Ctrl-C is the caller's
+            previous[sig] = signal.signal(sig, lambda signum, frame: signals.append(signum))
+    try:
+        _ray_loop(ray, pending, spec, retries, progress, overwrite, signals)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _ray_loop(ray, pending: list[RunResult], spec: SweepSpec, retries: int, progress: _Progress, overwrite: bool,
+              signals: list[int]) -> None:
+    """:func:`_run_ray`'s submit/wait loop; ``signals`` grows by one entry per SIGINT/SIGTERM received."""
     num_cpus = spec.num_cpus if spec.num_cpus is not None else 1
     task = ray.remote(execute_run).options(num_cpus=num_cpus, num_gpus=spec.num_gpus, max_retries=0)
     threads = max(1, int(num_cpus))
@@ -622,19 +638,24 @@ def _run_ray(pending: list[RunResult], spec: SweepSpec, retries: int, address: O
 
     for res in pending:
         submit(res)  # Ray queues what does not fit the cluster's free resources
+    acted = 0  # signals already acted on
     while running:
-        try:
-            if deadline is not None and time.monotonic() > deadline:
-                raise KeyboardInterrupt  # the grace period is over: as a second signal
-            done, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
-        except KeyboardInterrupt:  # SIGINT/SIGTERM to the driver
-            if deadline is None:
+        if len(signals) > acted or (deadline is not None and time.monotonic() > deadline):
+            first = deadline is None and len(signals) - acted == 1
+            acted = len(signals)
+            if first:  # stop gracefully: the running trainings checkpoint
                 stop()
                 continue
-            cancel(force=True)  # a second one: do not wait for the checkpoints
+            # a second signal, or the grace period is over: do not wait for the checkpoints
+            cancel(force=True)
             for res, _ in running.values():
                 res.status, res.error = "interrupted", "Ray task killed before it stopped, its last checkpoint kept"
             return
+        try:
+            done, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
+        except KeyboardInterrupt:  # raised by a caller's handler (not the main thread): counts as a signal
+            signals.append(signal.SIGINT)
+            continue
         for ref in done:
             res, t0 = running.pop(ref)
             try:
