@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from test_viewer import _wait_until
 from warpnerf.train.pause import PAUSE_FILE, wait_while_paused
 
 
@@ -53,15 +54,6 @@ pose_refine_steps = 2
 """
 
 
-def _until(condition, timeout: float) -> bool:
-    t_end = time.time() + timeout
-    while not condition():
-        if time.time() > t_end:
-            return False
-        time.sleep(0.1)
-    return True
-
-
 def test_the_viewer_pauses_and_resumes_a_live_training(tmp_path):
     pytest.importorskip("viser")
     from warpnerf.outputs.viewer import RunViewer, serve, viser_from_c2w, wait_for_checkpoint
@@ -83,13 +75,13 @@ def test_the_viewer_pauses_and_resumes_a_live_training(tmp_path):
         thread = threading.Thread(target=serve, args=(viewer, "127.0.0.1", 0, 0.2, stop),
                                   kwargs=dict(ready=apps.append), daemon=True)
         thread.start()
-        assert _until(lambda: apps, 60)
+        assert _wait_until(lambda: apps, 60)
         app = apps[0]
         assert app.pause.label == "Pause training" and not app.pause.disabled
 
         app.pause.value = True  # the button's click
         assert (run / PAUSE_FILE).exists() and app.pause.label == "Resume training"
-        assert _until(lambda: app.training.paused, 120), app.status.content
+        assert _wait_until(lambda: app.training.paused, 120), app.status.content
         paused_at = viewer.step
         assert f"paused at step {paused_at}" in app.status.content
         at_pause = torch.load(run / "checkpoint.pt", weights_only=True)
@@ -108,13 +100,13 @@ def test_the_viewer_pauses_and_resumes_a_live_training(tmp_path):
 
         app.pause.value = True  # Resume
         assert not (run / PAUSE_FILE).exists() and app.pause.label == "Pause training"
-        assert _until(lambda: viewer.step > paused_at, 120), "the training did not resume"
+        assert _wait_until(lambda: viewer.step > paused_at, 120), "the training did not resume"
         after = torch.load(run / "checkpoint.pt", weights_only=True)
         # the pause (over 4 s) is not training time: counted, the 5 steps since would add more than 4 s
         assert after["train_seconds"] - at_pause["train_seconds"] < 4.0, (at_pause["train_seconds"],
                                                                           after["train_seconds"])
         # the frustums follow the new checkpoint's estimated poses
-        assert _until(lambda: np.allclose(app.frustums["train"][0].position,
+        assert _wait_until(lambda: np.allclose(app.frustums["train"][0].position,
                                           viser_from_c2w(viewer.camera_sets()["train"].c2w[0])[0], atol=1e-5), 10)
         assert "training" in app.status.content and app.training.live
     finally:

@@ -47,17 +47,14 @@ from urllib.parse import urlsplit
 import numpy as np
 import torch
 
-from warpnerf import device as devmod
-from warpnerf.data.resolve import load_scene
 from warpnerf.geometry.cameras import map_gt_poses_to_estimate_frame
 from warpnerf.model.g2fr import LevelWeights
-from warpnerf.runs.folder import (CHECKPOINT, CONFIG, METRICS, RunLock, check_scene, load_state_checked,
-                                  read_checkpoint, read_metrics)
+from warpnerf.runs.folder import (CHECKPOINT, CONFIG, METRICS, RunLock, load_run, load_state_checked,
+                                  read_checkpoint)
 from warpnerf.runs.video import look_target
-from warpnerf.train.config import ConfigError, build_config, load_toml
+from warpnerf.train.config import ConfigError
 from warpnerf.train.evaluate import depth_to_rgb
 from warpnerf.train.pause import pause_path
-from warpnerf.train.tasks import make_task
 from warpnerf.train.trainer import Trainer
 from warpnerf.train.views import test_cameras, training_cameras
 
@@ -248,36 +245,17 @@ def _release_memory() -> None:
         pass
 
 
-def _load_for_viewing(trainer: Trainer, state: dict, run_dir: str) -> None:
-    # the viewer never takes an optimizer step: the moments (2/3 of a checkpoint) stay unread
-    state = {**state, "optimizer": trainer.optimizer.state_dict()}
-    load_state_checked(trainer, state, run_dir)
-
-
 def load_for_viewing(run_dir: str, device: str = "auto", progress: bool = False) -> Trainer:
     """:func:`~warpnerf.runs.folder.load_run` for a viewer, which renders and never trains: the same
     scene (same checks) but without its val split, and once loaded without the views' images
     (zero-stride stand-ins keep their shapes), the error map and the optimizer's moments. The
     training and test cameras, intrinsics, ray space and background are those ``load_run`` gives."""
-    cfg_path = os.path.join(run_dir, CONFIG)
-    for p in (cfg_path, os.path.join(run_dir, CHECKPOINT)):
+    for p in (os.path.join(run_dir, CONFIG), os.path.join(run_dir, CHECKPOINT)):
         if not os.path.exists(p):
             raise ConfigError(f"not a run folder with a checkpoint: {p} is missing")
-    values = load_toml(cfg_path)
-    values["device"] = device
-    cfg = build_config(values.pop("task"), overrides=values)
-    cfg.out = run_dir
-    dev = devmod.resolve_device(cfg.device)
-    state = read_checkpoint(run_dir, map_location=devmod.torch_device(dev))
-    # runs.folder.load_scene_for's arguments, splits aside (tests/outputs/test_viewer.py compares the two)
-    scene = load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
-                       builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
-                       unbounded=cfg.unbounded, llff_test=cfg.llff_test, splits=("train", "test"))
-    check_scene(run_dir, scene, (read_metrics(run_dir) or {}).get("scene_source") or state.get("scene_source"))
-    trainer = Trainer(cfg, scene, make_task(cfg), dev)
+    trainer = load_run(run_dir, device, progress, splits=("train", "test"), optimizer=False)
     trainer.error_map = None
-    _load_for_viewing(trainer, state, run_dir)
-    del state
+    scene = trainer.scene
     for views in (trainer.views, scene.train, scene.test, scene.val):
         if views is not None:
             views.images, views.alpha, views.depth = (_stand_in(views.images), _stand_in(views.alpha),
@@ -396,7 +374,7 @@ class RunViewer:
         except Exception:  # caught mid-write by a training process (or not a checkpoint): try again at the next poll
             return False
         with self.lock:
-            _load_for_viewing(self.trainer, state, self.run_dir)
+            load_state_checked(self.trainer, state, self.run_dir, optimizer=False)
             self.step = self._step_of(state)
             self._mtime = mtime
         return True

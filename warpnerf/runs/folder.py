@@ -270,11 +270,16 @@ def read_checkpoint(run_dir: str, map_location=None) -> dict:
     return load_checkpoint(os.path.join(run_dir, CHECKPOINT), map_location=map_location)
 
 
-def load_scene_for(cfg: TrainConfig, progress: bool = True):
-    """The scene ``cfg`` trains on (name, data root, downscale, ...), loaded or generated."""
+ALL_SPLITS = ("train", "val", "test")
+
+
+def load_scene_for(cfg: TrainConfig, progress: bool = True, splits: tuple[str, ...] = ALL_SPLITS):
+    """The scene ``cfg`` trains on (name, data root, downscale, ...), loaded or generated; ``splits``: the
+    splits to read (a viewer skips val)."""
     return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
                       builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
-                      unbounded=cfg.unbounded, ndc=cfg.ndc, llff_test=cfg.llff_test, background=cfg.background)
+                      unbounded=cfg.unbounded, ndc=cfg.ndc, llff_test=cfg.llff_test, background=cfg.background,
+                      splits=splits)
 
 
 def resolve_data_root(cfg: TrainConfig) -> None:
@@ -297,9 +302,13 @@ def check_scene(run_dir: str, scene, recorded: Optional[str]) -> None:
                           f"resolves to the {scene.source} scene at {scene.root}; {hint}")
 
 
-def load_state_checked(trainer: Trainer, state: dict, run_dir: str) -> None:
+def load_state_checked(trainer: Trainer, state: dict, run_dir: str, optimizer: bool = True) -> None:
     """``trainer.load_state_dict(state)``; a checkpoint whose tensors do not fit this scene (another
-    view count or size) is a one-line CheckpointError instead of torch's size-mismatch traceback."""
+    view count or size) is a one-line CheckpointError instead of torch's size-mismatch traceback.
+    ``optimizer=False`` leaves the optimizer's moments (2/3 of a checkpoint) unread: for a viewer, which
+    never takes a step."""
+    if not optimizer:
+        state = {**state, "optimizer": trainer.optimizer.state_dict()}
     try:
         trainer.load_state_dict(state)
     except (RuntimeError, KeyError, ValueError) as e:
@@ -308,8 +317,10 @@ def load_state_checked(trainer: Trainer, state: dict, run_dir: str) -> None:
                               f"now ({trainer.scene.source}, {trainer.scene.root}): {first[:200]}") from None
 
 
-def load_run(run_dir: str, device: str = "auto", progress: bool = False) -> Trainer:
-    """A :class:`~warpnerf.train.trainer.Trainer` holding a finished run's field, occupancy grid and poses.
+def load_run(run_dir: str, device: str = "auto", progress: bool = False, splits: tuple[str, ...] = ALL_SPLITS,
+             optimizer: bool = True) -> Trainer:
+    """A :class:`~warpnerf.train.trainer.Trainer` holding a finished run's field, occupancy grid and poses
+    (``splits`` and ``optimizer``: see :func:`load_scene_for` and :func:`load_state_checked`).
 
     The checkpoint is read (and checked) before the scene loads, so a bad one fails at once."""
     cfg_path, ckpt = os.path.join(run_dir, CONFIG), os.path.join(run_dir, CHECKPOINT)
@@ -322,8 +333,8 @@ def load_run(run_dir: str, device: str = "auto", progress: bool = False) -> Trai
     cfg.out = run_dir
     dev = devmod.resolve_device(cfg.device)
     state = read_checkpoint(run_dir, map_location=devmod.torch_device(dev))
-    scene = load_scene_for(cfg, progress)
+    scene = load_scene_for(cfg, progress, splits)
     check_scene(run_dir, scene, (read_metrics(run_dir) or {}).get("scene_source") or state.get("scene_source"))
     trainer = Trainer(cfg, scene, make_task(cfg), dev)
-    load_state_checked(trainer, state, run_dir)
+    load_state_checked(trainer, state, run_dir, optimizer)
     return trainer
