@@ -27,6 +27,7 @@ from warpnerf.cli import doctor
 from warpnerf.cli.errors import UserError
 from warpnerf.cli.flags import add_config_flags, config_overrides, preset_values, task_for_help
 from warpnerf.cli.outputs import add_output_commands
+from warpnerf.cli.recording import Recorder, add_record_flags
 from warpnerf.train.config import MODELS, VIEW_SETS, ConfigError, build_config, load_toml, resolve_config_file
 
 
@@ -42,37 +43,6 @@ def _setup_device(args) -> str:
         return device.resolve_device(args.device)
     except ValueError as e:
         raise UserError(str(e)) from e
-
-
-def _add_record(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--record", metavar="NAME", default=None,
-                   help="also write a results record docs/results/NAME.json (command, commit, machine, whether the "
-                        "CPU was free, each run's metrics.json and config.toml); 'warpnerf report' renders it")
-    p.add_argument("--records-dir", default=None, help="folder for --record (default docs/results)")
-    p.add_argument("--record-replace", action="store_true", help="with --record: replace an existing record")
-
-
-class _Recorder:
-    """``--record NAME``: checks the record can be written before any work, measures the CPU left to
-    other processes while the work runs, then writes the record from the run folders."""
-
-    def __init__(self, args, kind: str):
-        self.args, self.kind, self.path, self.meter = args, kind, None, None
-        if args.record:
-            self.path = record.check_new_record(args.record, args.records_dir, replace=args.record_replace)
-            self.meter = record.CpuMeter().start()
-
-    def write(self, run_dirs: list[str], extra: dict | None = None) -> None:
-        if self.path is None:
-            return
-        cpu = self.meter.stop()
-        runs = [record.read_run_files(d) for d in run_dirs]
-        rec = record.build_record(self.args.record, self.kind, self.args.argv, runs, cpu,
-                                  threads=device.num_threads(), extra=extra)
-        record.write_record(self.path, rec)
-        alone = {True: "alone", False: f"NOT alone: other processes used {cpu['other_cores']:.2f} cores",
-                 None: "alone: unknown"}[cpu["alone"]]
-        print(f"record: {self.path} ({alone})")
 
 
 def _table_record_dirs(results: list) -> tuple[list[str], dict]:
@@ -102,7 +72,7 @@ def cmd_record(args) -> int:
 def cmd_sweep(args) -> int:
     from warpnerf.studies import sweep  # lazy: keeps --help fast (torch)
 
-    recorder = _Recorder(args, "table")
+    recorder = Recorder(args, "table")
     return sweep.run_cli(args, on_done=lambda res: recorder.write(*_table_record_dirs(res["results"])))
 
 
@@ -146,7 +116,7 @@ def cmd_train(args) -> int:
         cfg = build_config(task, None, overrides)
     else:
         cfg = build_config(task, args.config, overrides)
-    recorder = _Recorder(args, "run")
+    recorder = Recorder(args, "run")
     metrics = run_training(cfg, progress=not args.quiet, overwrite=args.overwrite, resume=bool(args.resume),
                            force=args.force)
     if metrics.get("already_finished"):
@@ -233,7 +203,7 @@ def cmd_table(args) -> int:
     from warpnerf.studies.table import run_table  # lazy: keeps --help fast (torch)
 
     _setup_device(args)
-    recorder = _Recorder(args, "table")
+    recorder = Recorder(args, "table")
     res = run_table(scenes=args.scenes.split(","), tasks=args.tasks.split(","), models=args.models.split(","),
                     data_root=args.data_root, iters=args.iters, out=args.out, seed=args.seed, device=args.device,
                     config_file=args.config, threads=args.threads, progress=not args.quiet, overwrite=args.overwrite,
@@ -274,7 +244,7 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
                    help="continue the unfinished run folder RUN from its last checkpoint")
     t.add_argument("--force", action="store_true", help="with --resume: accept a changed configuration")
     t.add_argument("--overwrite", action="store_true", help="clear an existing run folder at --out first")
-    _add_record(t)
+    add_record_flags(t)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="re-evaluate a finished run folder")
@@ -322,10 +292,10 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
     tb.add_argument("--overwrite", action="store_true",
                     help="replace finished runs whose configuration differs (e.g. other --iters); never others' folders")
     _add_device(tb)
-    _add_record(tb)
+    add_record_flags(tb)
     tb.set_defaults(func=cmd_table)
     sweep.add_parser(sub)
-    _add_record(sub.choices["sweep"])
+    add_record_flags(sub.choices["sweep"])
     sub.choices["sweep"].set_defaults(func=cmd_sweep)
     report.add_parser(sub)  # renders docs/results.md from docs/results/ (stdlib only: no torch)
     sub.choices["report"].set_defaults(func=report.run_cli)

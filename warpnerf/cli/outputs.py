@@ -12,8 +12,8 @@ import json
 import os
 import time
 
-from warpnerf import device
 from warpnerf.cli.errors import UserError
+from warpnerf.cli.recording import Recorder, add_record_flags
 from warpnerf.runs import record
 
 
@@ -51,11 +51,8 @@ def add_output_commands(sub) -> None:
     e.add_argument("--min-opacity", type=float, default=0.95, help="points: keep pixels at least this opaque")
     e.add_argument("--max-points", type=int, default=1_000_000)
     e.add_argument("--max-views", type=int, default=0, help="points: render at most this many training views (0: all)")
-    e.add_argument("--record", metavar="NAME", default=None,
-                   help="also write a results record docs/results/NAME.json: the command, commit, machine, the "
-                        "export's counts, time and peak memory (<out>.export.json) and the run's metrics and config")
-    e.add_argument("--records-dir", default=None, help="folder for --record (default docs/results)")
-    e.add_argument("--record-replace", action="store_true", help="with --record: replace an existing record")
+    add_record_flags(e, "the export's counts, time and peak memory (<out>.export.json) and the run's metrics and "
+                        "config")
     e.set_defaults(func=cmd_export)
 
     v = sub.add_parser("view", help="live viewer of a run in the browser (viser); follows a training run's checkpoints")
@@ -116,9 +113,7 @@ def cmd_export(args) -> int:
     if args.min_component_faces is not None and args.min_component_faces < 1:
         raise UserError("need --min-component-faces >= 1 (--keep-floaters keeps every piece)")
     out = args.out or os.path.join(args.run, f"{args.what}.ply")
-    # a record that could not be written fails before any work (RecordError: one line)
-    record_path = record.check_new_record(args.record, args.records_dir, args.record_replace) if args.record else None
-    meter = record.CpuMeter().start()
+    recorder = Recorder(args, "export")  # a record that could not be written fails before any work (one line)
     trainer = load_run(args.run, args.device, progress=not args.quiet)
     info = {"what": args.what, "run": args.run, "out": out, "peak_rss_mb_load": round(peak_rss_mb(), 1)}
     start_memory_window()  # from here the peak is the export's (the loaded run stays resident)
@@ -144,14 +139,8 @@ def cmd_export(args) -> int:
         raise UserError(str(e)) from e
     info.update(export_seconds=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_rss_mb(), 1))
     atomic_write_text(info_path(out), json.dumps(info, indent=1, sort_keys=True) + "\n")
-    if record_path:
-        cpu = meter.stop()
-        rec = record.build_record(args.record, "export", args.argv, [], cpu, threads=device.num_threads(),
-                                  extra={"export": info, "source_run": record.read_run_files(args.run)})
-        record.write_record(record_path, rec)
-        alone = {True: "alone", False: f"NOT alone: other processes used {cpu['other_cores']:.2f} cores",
-                 None: "alone: unknown"}[cpu["alone"]]
-        print(f"record: {record_path} ({alone})")
+    if recorder.path:  # the export's own record holds no run row: the run it read is its source
+        recorder.write([], extra={"export": info, "source_run": record.read_run_files(args.run)})
     return 0
 
 
