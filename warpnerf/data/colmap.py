@@ -437,7 +437,7 @@ def read_split_lists(root: str) -> dict[str, list[str]] | None:
 
 def read_colmap_poses(root: str) -> np.ndarray:
     """(N, 3, 4) OpenGL camera-to-world of the registered images of COLMAP scene ``root`` (sorted by name),
-    read from the images file alone: what :func:`warpnerf.data.resolve.scene_rig` needs to classify the rig
+    read from the images file alone: what :func:`warpnerf.data.resolve.capture_rig` needs to classify the rig
     before anything loads. DatasetError when there is no model or no finite pose."""
     sparse = find_sparse(root)
     if sparse is None:

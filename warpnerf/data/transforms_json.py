@@ -92,7 +92,7 @@ def _image_path(root: str, file_path: str) -> str:
 
 def read_transforms_poses(root: str) -> np.ndarray:
     """(N, 3, 4) OpenGL camera-to-world of the frames of ``root/transforms.json``, read from the file alone
-    (:func:`warpnerf.data.resolve.scene_rig`); DatasetError for a malformed file or pose."""
+    (:func:`warpnerf.data.resolve.capture_rig`); DatasetError for a malformed file or pose."""
     path = os.path.join(root, TRANSFORMS_FILE)
     meta = read_transforms_json(path)  # checks every frame's matrix
     return np.stack([np.asarray(fr["transform_matrix"], np.float64)[:3, :4] for fr in meta["frames"]])
