@@ -151,11 +151,21 @@ def test_eval_with_device_override_reproduces_metrics(work):
     assert ev["psnr"] == metrics(work / "ref")["psnr"]
 
 
-@pytest.fixture(scope="module")
-def adaptive_work(tmp_path_factory):
-    """A few-shot run whose G²fR levels open on loss plateaus: the schedule's state must resume too."""
-    d = tmp_path_factory.mktemp("resume_adaptive")
-    (d / "tiny.toml").write_text(TINY + 'g2fr_schedule = "adaptive"\ng2fr_plateau_window = 3\ng2fr_plateau_tol = 0.9\n')
+# schedules whose state moves with the run: levels open on loss plateaus (adaptive) or on val-PSNR plateaus
+# (heldout; min_gain 100 dB: every check after the first is a plateau, so levels open on both sides of the kill;
+# drop 100 dB: the guard never closes them, so where they open does not hang on the PSNR's noise)
+SCHEDULE_CONFIGS = {
+    "adaptive": 'g2fr_schedule = "adaptive"\ng2fr_plateau_window = 3\ng2fr_plateau_tol = 0.9\n',
+    "heldout": 'g2fr_schedule = "heldout"\ng2fr_heldout_window = 4\ng2fr_heldout_min_gain = 100.0\n'
+               'g2fr_heldout_drop = 100.0\ng2fr_heldout_views = 2\n',
+}
+
+
+@pytest.fixture(scope="module", params=sorted(SCHEDULE_CONFIGS))
+def adaptive_work(request, tmp_path_factory):
+    """A few-shot run whose G²fR levels open on a measured signal: the schedule's state must resume too."""
+    d = tmp_path_factory.mktemp(f"resume_{request.param}")
+    (d / "tiny.toml").write_text(TINY + SCHEDULE_CONFIGS[request.param])
     return d
 
 
@@ -170,7 +180,7 @@ def test_adaptive_schedule_resumes_bit_identical(adaptive_work):
     p = run(adaptive_args(d / "ref", d / "tiny.toml"), d)
     assert p.returncode == 0, p.stderr
     opened = json.loads((d / "ref" / "metrics.json").read_text())["g2fr_open_steps"]
-    assert any(10 < s <= 25 for s in opened)  # levels open on both sides of the kill: its state matters
+    assert any(10 < s <= 25 for s in opened) and any(s > 25 for s in opened)  # levels open on both sides of the kill
     out = d / "kill"
     p = run(adaptive_args(out, d / "tiny.toml"), d, fault="step:25")
     assert p.returncode == -signal.SIGKILL, p.stderr

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 if TYPE_CHECKING:  # annotations only: torch itself loads when a tensor is asked for (see g2fr_weights)
     import torch
@@ -32,8 +32,9 @@ G2FR_BETA = 0.5
 # the level ramps this module implements; the config's choices and checks read this registry
 MASK_MODES = ("cosine", "binary")
 
-# what moves tau: the step count (eq. 15, G2fRSchedule) or the training loss (AdaptiveG2fRSchedule)
-SCHEDULES = ("fixed", "adaptive")
+# what moves tau: the step count (eq. 15, G2fRSchedule), the training loss (AdaptiveG2fRSchedule) or the
+# PSNR of held-out val views (HeldoutG2fRSchedule)
+SCHEDULES = ("fixed", "adaptive", "heldout")
 
 
 def g2fr_tau(step: int, total_steps: int, n_levels: int, beta: float) -> float:
@@ -146,6 +147,13 @@ class G2fRSchedule:
     def observe(self, step: int, loss: float) -> None:
         """Eq. 15 depends on the step alone: the loss is not used."""
 
+    def wants_heldout(self, step: int) -> bool:
+        """Whether the trainer should measure the held-out PSNR after ``step`` (:meth:`observe_heldout`)."""
+        return False
+
+    def observe_heldout(self, step: int, psnr: float) -> None:
+        """The mean val PSNR (dB) after ``step``; only schedules that ask for it (:meth:`wants_heldout`) use it."""
+
     def state_dict(self) -> dict:
         return {}
 
@@ -226,11 +234,120 @@ class AdaptiveG2fRSchedule(G2fRSchedule):
         self._last, self._peak = state.get("last"), float(state.get("peak", 0.0))
 
 
+class HeldoutG2fRSchedule(G2fRSchedule):
+    """G²fR whose levels open while a held-out PSNR has stopped rising, and close again when it falls (not in
+    the paper).
+
+    The adaptive schedule reads the training loss, which keeps falling while the fine levels overfit: on mic
+    in the paper's regime both masked arms' held-out PSNR peaks and then declines as the last levels open
+    (docs/studies/2026-12-07-fewshot-paper-regime.md). This schedule reads what declines. After every
+    ``window`` steps (steps window - 1, 2 window - 1, ...: :meth:`wants_heldout`) the trainer renders a few
+    views of the scene's **val** split and reports their mean PSNR (:meth:`observe_heldout`). The schedule
+    judges the mean of the last ``average`` checks (the *value*; early in training one check can dip by
+    several dB and recover by the next), and ``best`` is the highest value so far. At each check, in this order:
+
+    1. **Guard.** If the value is more than ``drop`` dB below ``best``: when levels have opened since the check
+       that set ``best``, those levels close (their weight ramps back to 0 over ``window`` steps from the next
+       step) and the schedule freezes: the mask goes back to the levels that gave the best held-out PSNR and
+       no level opens again. When none has, nothing changes (a dip that no level caused: wait for it).
+    2. **Plateau.** Otherwise, unless the value beats ``best`` by more than ``min_gain`` dB (still rising), the
+       next level opens: it ramps in over ``window`` steps from the next step (cosine or binary, as in eq. 15).
+
+    Level 1 is on from the start (tau starts at 1). No step budget enters, and the val split it reads is
+    the one settings are chosen on, never test. The mask of any step is a function of ``open_steps`` and
+    ``close_steps`` alone (:meth:`tau`); closed levels are always the last ones opened, so ``close_steps[j]``
+    belongs to ``open_steps[len(open_steps) - len(close_steps) + j]``.
+
+    Example (one check per value, ``average=1``: a PSNR that stops rising opens a level; a fall of more than
+    ``drop`` below the best closes the level opened since the best, 50, and freezes the mask; the level
+    opened at 30 was open when the best was measured and stays):
+        >>> s = HeldoutG2fRSchedule(n_levels=6, window=10, drop=0.5, min_gain=0.1, average=1)
+        >>> [t for t in range(40) if s.wants_heldout(t)]
+        [9, 19, 29, 39]
+        >>> for step, psnr in [(9, 20.0), (19, 22.0), (29, 22.05), (39, 22.3), (49, 21.9), (59, 21.6)]:
+        ...     s.observe_heldout(step, psnr)
+        >>> s.open_steps, s.close_steps, s.frozen, s.wants_heldout(69)
+        ([30, 50], [60], True, False)
+        >>> s.active_levels(59), s.active_levels(80)
+        (3, 2)
+    """
+
+    def __init__(self, n_levels: int, window: int = 10, drop: float = 0.25, min_gain: float = 0.1, average: int = 3,
+                 mode: str = "cosine", enabled: bool = True):
+        if window < 1:
+            raise ValueError(f"heldout g2fr window must be >= 1 step, got {window}")
+        if average < 1:
+            raise ValueError(f"heldout g2fr average must be >= 1 check, got {average}")
+        if not (drop >= 0.0 and math.isfinite(drop)):
+            raise ValueError(f"heldout g2fr drop must be a finite number of dB >= 0, got {drop}")
+        if not (min_gain >= 0.0 and math.isfinite(min_gain)):
+            raise ValueError(f"heldout g2fr min_gain must be a finite number of dB >= 0, got {min_gain}")
+        g2fr_level_weight(2, 0.0, mode)
+        self.n_levels, self.mode, self.enabled = n_levels, mode, enabled
+        self.window, self.drop, self.min_gain, self.average = int(window), float(drop), float(min_gain), int(average)
+        self.total_steps, self.beta = None, None  # no budget
+        self.open_steps: list[int] = []  # the step at which each level from 2 on began to ramp in
+        self.close_steps: list[int] = []  # the step at which each closed level began to ramp out (the last ones opened)
+        self.checks: list[tuple[int, float]] = []  # (step, val PSNR dB) of every check
+        self.best: Optional[float] = None  # the best value (mean of the last `average` checks) so far ...
+        self.best_open = 0  # ... and how many levels had opened when it was measured
+        self.frozen = False
+
+    def tau(self, step: int) -> float:
+        """1 + each level opened by ``step`` (ramping in over ``window`` steps from its open step) - each closed
+        level (ramping out over ``window`` steps from its close step): the mask of any step the run has reached."""
+        ramp = lambda s: min(max(step - s, 0) / self.window, 1.0)  # noqa: E731
+        return 1.0 + sum(ramp(s) for s in self.open_steps) - sum(ramp(s) for s in self.close_steps)
+
+    def level_weights(self, step: int) -> LevelWeights:
+        if not self.enabled:
+            return LevelWeights.ones(self.n_levels)
+        tau = self.tau(step)
+        return LevelWeights(tuple(g2fr_level_weight(i + 1, tau, self.mode) for i in range(self.n_levels)))
+
+    def wants_heldout(self, step: int) -> bool:
+        """After every ``window``-th step, until the schedule has frozen."""
+        return self.enabled and not self.frozen and (step + 1) % self.window == 0
+
+    def observe_heldout(self, step: int, psnr: float) -> None:
+        """One check's mean val PSNR (dB) after ``step``: close and freeze on a drop, else open on a plateau."""
+        if not self.enabled or self.frozen:
+            return
+        self.checks.append((int(step), float(psnr)))
+        recent = [p for _, p in self.checks[-self.average:]]
+        value = sum(recent) / len(recent)
+        if self.best is not None and value < self.best - self.drop:
+            if len(self.open_steps) > self.best_open:
+                self.close_steps = [step + 1] * (len(self.open_steps) - self.best_open)
+                self.frozen = True
+            return
+        rising = self.best is None or value > self.best + self.min_gain
+        if self.best is None or value > self.best:
+            self.best, self.best_open = value, len(self.open_steps)
+        if not rising and len(self.open_steps) < self.n_levels - 1:
+            self.open_steps.append(step + 1)
+
+    def state_dict(self) -> dict:
+        return {"open_steps": list(self.open_steps), "close_steps": list(self.close_steps),
+                "checks": [list(c) for c in self.checks], "best": self.best, "best_open": self.best_open,
+                "frozen": self.frozen}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.open_steps = [int(s) for s in state.get("open_steps", [])]
+        self.close_steps = [int(s) for s in state.get("close_steps", [])]
+        self.checks = [(int(s), float(p)) for s, p in state.get("checks", [])]
+        self.best = None if state.get("best") is None else float(state["best"])
+        self.best_open, self.frozen = int(state.get("best_open", 0)), bool(state.get("frozen", False))
+
+
 def make_schedule(kind: str, n_levels: int, total_steps: int, beta: float = G2FR_BETA, mode: str = "cosine",
-                  enabled: bool = True, window: int = 10, tol: float = 0.5) -> G2fRSchedule:
+                  enabled: bool = True, window: int = 10, tol: float = 0.5, heldout_window: int = 10,
+                  drop: float = 0.25, min_gain: float = 0.1, average: int = 3) -> G2fRSchedule:
     """The schedule named ``kind`` (one of :data:`SCHEDULES`)."""
     if kind == "fixed":
         return G2fRSchedule(n_levels, total_steps, beta, mode, enabled)
     if kind == "adaptive":
         return AdaptiveG2fRSchedule(n_levels, window, tol, mode, enabled)
+    if kind == "heldout":
+        return HeldoutG2fRSchedule(n_levels, heldout_window, drop, min_gain, average, mode, enabled)
     raise ValueError(f"unknown g2fr schedule '{kind}': expected one of {SCHEDULES}")

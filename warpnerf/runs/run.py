@@ -311,7 +311,9 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
         "eval_split": cfg.eval_split,
         "epochs": round(trainer.epochs, 3),  # passes over the training pixels
         "g2fr_schedule": cfg.g2fr_schedule,
-        "g2fr_open_steps": list(getattr(trainer.schedule, "open_steps", [])),  # adaptive: when each level opened
+        "g2fr_open_steps": list(getattr(trainer.schedule, "open_steps", [])),  # adaptive, heldout: when each level opened
+        "g2fr_close_steps": list(getattr(trainer.schedule, "close_steps", [])),  # heldout: when the last ones closed
+        "g2fr_heldout_checks": [list(c) for c in getattr(trainer.schedule, "checks", [])],  # heldout: [step, val PSNR]
         "view_set": cfg.view_set if cfg.task == "fewshot" and not cfg.views.strip() else None,
         "eval_seconds": eval_seconds,
         "n_train_views": len(trainer.views),

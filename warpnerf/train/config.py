@@ -117,9 +117,14 @@ class TrainConfig:
     g2fr: bool = False  # mask grid levels coarse to fine
     g2fr_beta: float = G2FR_BETA  # fraction of training over which levels are switched on
     g2fr_mask: str = "cosine"  # level ramp: cosine (BARF) | binary (on at the end of its ramp)
-    g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss stops improving; no budget needed)
+    g2fr_schedule: str = "fixed"  # fixed (eq. 15: tau from step / (beta * iters)) | adaptive (a level opens when the training loss stops improving; no budget needed) | heldout (a level opens when the val PSNR stops rising, and the levels opened since its best close when it falls; needs a val split)
     g2fr_plateau_window: int = 10  # adaptive: steps per loss window; a new level ramps in over one window (10 and g2fr_plateau_tol 0.5: the best of 7 pairs on lego's val split, docs/studies/2026-12-07-fewshot-paper-regime.md)
     g2fr_plateau_tol: float = 0.5  # adaptive: the next level opens when a window's relative loss improvement falls to this fraction of the largest since the last level opened
+    g2fr_heldout_window: int = 10  # heldout: steps between val PSNR checks; a level ramps in (or out) over one window (10: the adaptive schedule's window)
+    g2fr_heldout_views: int = 4  # heldout: val views in each check (evenly spaced; half resolution from 64 px up, like the held-out curve)
+    g2fr_heldout_average: int = 3  # heldout: the schedule judges the mean val PSNR of the last this many checks (one check can dip by dB early in training and recover by the next)
+    g2fr_heldout_min_gain: float = 0.1  # heldout: a mean that beats the best so far by no more than this (dB) is a plateau: the next level opens
+    g2fr_heldout_drop: float = 0.25  # heldout: a mean this many dB below the best closes the levels opened since the best, and no level opens again (0.25: several times the late-run check-to-check noise of mic's val PSNR, seed 0, docs/studies/2026-12-07-fewshot-paper-regime.md)
     # --- hash grid and MLPs ---
     levels: int = 16  # grid levels L
     features: int = 2  # features F per grid level
@@ -420,7 +425,8 @@ def validate(cfg: TrainConfig) -> None:
                 "occ_resolution": 1, "occ_update_every": 1, "march_steps": 1, "max_samples_per_ray": 1,
                 "base_resolution": 1, "max_resolution": 1, "cp_rank": 1, "cp_max_resolution": 1,
                 "log2_table_size": 1, "checkpoint_every": 0, "eval_max_views": 0, "video_frames": 0,
-                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0, "g2fr_plateau_window": 2}
+                "pose_refine_steps": 0, "occ_warmup": 0, "geo_features": 0, "g2fr_plateau_window": 2,
+                "g2fr_heldout_window": 1, "g2fr_heldout_views": 1, "g2fr_heldout_average": 1}
     for key, lo in at_least.items():
         value = getattr(cfg, key)
         if value is not None and value < lo:
@@ -447,7 +453,7 @@ def validate(cfg: TrainConfig) -> None:
     if not math.isfinite(cfg.cp_density_shift):
         raise ConfigError(f"cp_density_shift must be a finite number, got {cfg.cp_density_shift}")
     for key in ("pose_noise", "pose_noise_rot", "pose_noise_trans", "render_step", "occ_threshold",
-                "distortion_weight"):
+                "distortion_weight", "g2fr_heldout_min_gain", "g2fr_heldout_drop"):
         value = getattr(cfg, key)
         if value is not None and not (value >= 0 and math.isfinite(value)):
             raise ConfigError(f"{key} must be a finite number >= 0, got {value}")

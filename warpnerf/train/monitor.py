@@ -108,6 +108,38 @@ def heldout_split(trainer) -> str:
     return split if getattr(trainer.scene, split, None) is not None else "test"
 
 
+class HeldoutViews:
+    """``k`` views of a held-out ``split`` (evenly spaced over it) at half resolution from 64 px up (4x cheaper
+    renders), and their mean PSNR at a step (:meth:`check`): the held-out curve's views (:class:`Monitor`) and
+    the val views the held-out G²fR schedule reads (``Trainer.fit``)."""
+
+    def __init__(self, trainer, split: str, k: int):
+        views = getattr(trainer.scene, split)
+        if views is None:
+            raise ConfigError(f"scene '{trainer.scene.name}' has no {split} split")
+        self.split = split
+        self.pick = torch.linspace(0, len(views) - 1, min(max(int(k), 1), len(views))).round().long()
+        f = 2 if min(views.height, views.width) >= 64 else 1
+        self.images = torch.stack([_area_downscale(views.images[i], f) for i in self.pick.tolist()])
+        self.focal, self.cx, self.cy = views.focal / f, views.cx / f, views.cy / f
+
+    def check(self, trainer, step: int, progress: bool = False) -> tuple[float, list[torch.Tensor]]:
+        """(mean PSNR dB, the (h, w, 3) renders) of the views rendered with the field and level weights of
+        ``step``; pose task: the ground-truth poses mapped by the current training-camera alignment, no refinement."""
+        weights = trainer.level_weights(step)
+        psnrs, preds = [], []
+        # leave=False: the bar sits under the training bar while the check runs, then disappears
+        bar = tqdm(zip(test_cameras(trainer, self.split)[self.pick], self.images), total=len(self.images),
+                   desc=f"held-out check ({self.split}), step {step + 1}", disable=not progress, leave=False,
+                   dynamic_ncols=True, unit="view")
+        for c2w, gt in bar:
+            out = trainer.renderer.render_image(c2w.to(trainer.device), gt.shape[0], gt.shape[1], self.focal, self.cx,
+                                                self.cy, weights)
+            preds.append(out["rgb"].clamp(0, 1).cpu())
+            psnrs.append(M.psnr(preds[-1], gt))
+        return float(sum(psnrs) / len(psnrs)), preds
+
+
 class Monitor:
     """The ``Trainer.fit`` callback that records held-out PSNR and writes TensorBoard scalars."""
 
@@ -126,52 +158,25 @@ class Monitor:
             self.writer = SummaryWriter(log_dir or os.path.join(cfg.run_dir(), "tb"))
         elif cfg.log != "none":
             raise ConfigError(f"unknown --log '{cfg.log}': expected none or tensorboard")
-        self._heldout = self._heldout_views(trainer) if self.heldout_every > 0 else None
+        # the curve's split is heldout_split (val by default, so that settings chosen on the curve never saw a test view)
+        self._heldout = (HeldoutViews(trainer, heldout_split(trainer), trainer.cfg.heldout_views)
+                         if self.heldout_every > 0 else None)
         trainer.history.setdefault("heldout", [])  # (step, PSNR dB) pairs
         trainer.history.setdefault("heldout_epochs", [])  # the epochs (passes over the training pixels) at each
         trainer.history.setdefault("lipschitz", [])  # (step, L_Psi) pairs
         self._t_last, self._step_last = time.perf_counter(), -1
         self.heldout_seconds = 0.0
 
-    def _heldout_views(self, trainer):
-        """(poses (K, 3, 4) in the field's frame, half-resolution images (K, h, w, 3), intrinsics) of the
-        ``heldout_split`` (val by default, so that settings chosen on the curve never saw a test view)."""
-        split = heldout_split(trainer)
-        test = getattr(trainer.scene, split)
-        k = min(max(int(trainer.cfg.heldout_views), 1), len(test))
-        pick = torch.linspace(0, len(test) - 1, k).round().long()
-        # pose task: ground-truth poses mapped by the current training-camera alignment, no refinement
-        self._test_c2w = lambda: test_cameras(trainer, split)[pick]
-        self._split = split
-        f = 2 if min(test.height, test.width) >= 64 else 1  # half resolution: 4x cheaper renders
-        images = torch.stack([_area_downscale(test.images[i], f) for i in pick.tolist()])
-        return images, test.focal / f, test.cx / f, test.cy / f
-
     def heldout_psnr(self, trainer, step: int) -> float:
         """Mean PSNR (dB) of the held-out views rendered with the field and level weights of ``step``."""
-        return self._heldout_check(trainer, step)[0]
-
-    def _heldout_check(self, trainer, step: int) -> tuple[float, list[torch.Tensor]]:
-        """(mean PSNR dB, the (h, w, 3) renders) of the held-out views at ``step``."""
-        images, focal, cx, cy = self._heldout
-        weights = trainer.level_weights(step)
-        psnrs, preds = [], []
-        # leave=False: the bar sits under the training bar while the check runs, then disappears
-        bar = tqdm(zip(self._test_c2w(), images), total=len(images), desc=f"held-out check ({self._split}), step {step + 1}",
-                   disable=not self.progress, leave=False, dynamic_ncols=True, unit="view")
-        for c2w, gt in bar:
-            out = trainer.renderer.render_image(c2w.to(trainer.device), gt.shape[0], gt.shape[1], focal, cx, cy,
-                                                weights)
-            preds.append(out["rgb"].clamp(0, 1).cpu())
-            psnrs.append(M.psnr(preds[-1], gt))
-        return float(sum(psnrs) / len(psnrs)), preds
+        return self._heldout.check(trainer, step)[0]
 
     def __call__(self, trainer, step: int, stats: dict) -> None:
         last = step == trainer.cfg.iters - 1
         values = {}
         if self._heldout is not None and ((step + 1) % self.heldout_every == 0 or last):
             t0 = time.perf_counter()
-            value, preds = self._heldout_check(trainer, step)
+            value, preds = self._heldout.check(trainer, step, progress=self.progress)
             self.heldout_seconds += time.perf_counter() - t0
             trainer.history["heldout"].append((step, value))
             trainer.history["heldout_epochs"].append(trainer.epochs)
@@ -179,7 +184,7 @@ class Monitor:
             if self.writer is not None:  # the views side by side: (h, K w, 3)
                 self.writer.add_image("heldout/prediction", _as_uint8(torch.cat(preds, dim=1)), step,
                                       dataformats="HWC")
-                self.writer.add_image("heldout/ground_truth", _as_uint8(torch.cat(list(self._heldout[0]), dim=1)),
+                self.writer.add_image("heldout/ground_truth", _as_uint8(torch.cat(list(self._heldout.images), dim=1)),
                                       step, dataformats="HWC")
         if step % self.every == 0 or last:
             now = time.perf_counter()

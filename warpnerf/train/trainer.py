@@ -24,8 +24,9 @@ from warpnerf.model.occupancy import OccupancyGrid
 from warpnerf.model.renderer import Renderer, default_step, pixel_rays
 from warpnerf.train import metrics as M
 from warpnerf.train.checkpoint import CheckpointError, rng_state, set_rng_state
-from warpnerf.train.config import TrainConfig
+from warpnerf.train.config import ConfigError, TrainConfig
 from warpnerf.train.error_map import ErrorMap
+from warpnerf.train.monitor import HeldoutViews
 
 try:
     import resource
@@ -148,7 +149,16 @@ class Trainer:
         self.optimizer = _adam(groups, cfg.lr)
         self._sync_background()
         self.schedule = make_schedule(cfg.g2fr_schedule, cfg.levels, cfg.iters, cfg.g2fr_beta, cfg.g2fr_mask,
-                                      enabled=cfg.g2fr, window=cfg.g2fr_plateau_window, tol=cfg.g2fr_plateau_tol)
+                                      enabled=cfg.g2fr, window=cfg.g2fr_plateau_window, tol=cfg.g2fr_plateau_tol,
+                                      heldout_window=cfg.g2fr_heldout_window, drop=cfg.g2fr_heldout_drop,
+                                      min_gain=cfg.g2fr_heldout_min_gain, average=cfg.g2fr_heldout_average)
+        # the held-out schedule's own views: always val (never test, whatever heldout_split the curve reads)
+        self.schedule_views = None
+        if cfg.g2fr and cfg.g2fr_schedule == "heldout":
+            if scene.val is None:
+                raise ConfigError(f"--g2fr-schedule heldout reads the val split, and scene '{scene.name}' has none; "
+                                  f"choose --g2fr-schedule fixed or adaptive")
+            self.schedule_views = HeldoutViews(self, "val", cfg.g2fr_heldout_views)
         self.n_rays = cfg.batch_rays
         # a share of the rays drawn where the error is (instant-ngp's error map), importance-weighted
         self.error_map = (ErrorMap(*self.images.shape[:3], share=cfg.error_sampling, device=self.device)
@@ -312,6 +322,8 @@ class Trainer:
         for step in bar:
             stats = self.train_step(step)
             self.schedule.observe(step, stats["loss"])
+            if self.schedule.wants_heldout(step):
+                self.schedule.observe_heldout(step, self.schedule_views.check(self, step)[0])
             r = stats["loss"] / max(stats["empty_loss"], 1e-12)
             self.loss_ratio = r if self.loss_ratio is None else 0.9 * self.loss_ratio + 0.1 * r
             if step % cfg.log_every == 0:
