@@ -135,7 +135,7 @@ def test_paper_table_means_seeds_and_sets_the_paper_beside(tmp_path):
 
 def _fewshot_metrics(seed, arm, psnr, view_set="fps", scene="lego", source="dataset"):
     return {"scene": scene, "scene_source": source, "task": "fewshot", "model": "ngp", "g2fr": arm != "none",
-            "g2fr_schedule": "adaptive" if arm == "adaptive" else "fixed", "iters": 1000, "seed": seed, "psnr": psnr,
+            "g2fr_schedule": arm if arm in ("adaptive", "heldout") else "fixed", "iters": 1000, "seed": seed, "psnr": psnr,
             "ssim": 0.8, "lpips": None, "view_set": view_set, "eval_split": "test", "epochs": 3.0 + seed,
             "heldout_history": [[249, psnr - 2], [499, psnr - 1], [999, psnr]], "heldout_epochs": [1.0, 2.0, 3.0],
             "heldout_split": "val", "n_train_views": 10}
@@ -335,3 +335,31 @@ def test_an_export_record_without_its_figures_is_refused(tmp_path):
         json.dump(rec, fh)
     with pytest.raises(R.RecordError, match="export record without"):
         R.load_record(path)
+
+
+def test_the_heldout_arm_is_its_own_column_with_its_parameters(tmp_path):
+    """A held-out-schedule run is neither the fixed nor the adaptive arm: its own PSNR and gap columns, named
+    with its window, checks averaged, min gain, drop and val views, between the adaptive arm and w/o; paired
+    by seed."""
+    config = 'task = "fewshot"\nlog2_table_size = 19\nrandom_background = false\nlr_final_ratio = 1.0\n'
+    heldout = config + ("g2fr_heldout_window = 10\ng2fr_heldout_average = 3\ng2fr_heldout_min_gain = 0.1\n"
+                        "g2fr_heldout_drop = 0.25\ng2fr_heldout_views = 4\n")
+    adaptive = config + "g2fr_plateau_window = 10\ng2fr_plateau_tol = 0.5\n"
+    psnr = {("none", 0): 22.0, ("none", 1): 23.5, ("fixed", 0): 24.0, ("fixed", 1): 23.0, ("adaptive", 0): 23.0,
+            ("adaptive", 1): 22.0, ("heldout", 0): 22.5, ("heldout", 1): 23.25}
+    cfg = {"heldout": heldout, "adaptive": adaptive}
+    runs = [R.read_run_files(_run_folder(tmp_path / f"{a}{s}", _fewshot_metrics(s, a, v), cfg.get(a, config)))
+            for (a, s), v in psnr.items()]
+    _record(tmp_path, "tab3", runs)
+    rows = report.recorded_runs(R.load_records(str(tmp_path / "docs" / "results")))
+    text = report.fewshot_table(rows)
+    head = [c.strip() for c in text.splitlines()[0].strip("|").split("|")]
+    label = "w/ G2fR (held-out, window 10, mean of 3, gain 0.1, drop 0.25, 4 val views)"
+    assert [h for h in head if h.startswith("PSNR ")] == [
+        "PSNR w/ G2fR (fixed β)", "PSNR w/ G2fR (adaptive, window 10, tol 0.5)", f"PSNR {label}", "PSNR w/o",
+        "PSNR gap G2fR (fixed β) − w/o", "PSNR gap G2fR (adaptive, window 10, tol 0.5) − w/o",
+        f"PSNR gap {label.split(' ', 1)[1]} − w/o"]
+    cells = [c.strip() for c in next(line for line in text.splitlines() if "| lego |" in line).strip("|").split("|")]
+    gaps = [psnr[("heldout", s)] - psnr[("none", s)] for s in (0, 1)]  # +0.5, -0.25
+    assert cells[-1] == f"{statistics.fmean(gaps):+.2f} ± {statistics.stdev(gaps):.2f} (1/2 ≥ 0)"
+    assert report.g2fr_cell(report.arm_of({"g2fr": True, "g2fr_schedule": "heldout"}, {})) == "w/ (heldout ?/?/?/?/?)"

@@ -95,6 +95,10 @@ def test_view_sets_seeds_and_arms_expand_into_paired_runs(tmp_path):
         assert len({(r.view_set, r.seed, r.cfg.view_set, r.cfg.seed) for r in triple}) == 1
         differing = {k for r in triple[1:] for k, v in r.cfg.to_dict().items() if triple[0].cfg.to_dict()[k] != v}
         assert differing <= {"g2fr", "g2fr_schedule", "out"}
+    spec_path.write_text('scenes = ["chair"]\ntasks = ["fewshot"]\nout = "o"\narms = ["heldout", "nog2fr"]\n')
+    held = expand(load_spec(str(spec_path)))
+    assert [(r.arm, r.cfg.g2fr, r.cfg.g2fr_schedule) for r in held] == [("heldout", True, "heldout"),
+                                                                         ("nog2fr", False, "fixed")]
 
 
 def test_spec_view_sets_are_checked(tmp_path):

@@ -258,6 +258,25 @@ def test_fewshot_table_gives_mean_std_per_view_set_and_the_paired_gap():
     assert "seeds 0, 1, 2 (cells: mean ± sample std" in note and "The arms are paired" in note
 
 
+def test_fewshot_table_shows_the_heldout_arm_as_its_own_column():
+    from statistics import mean, stdev
+
+    from warpnerf.studies.tables import tables_markdown
+
+    psnr = {**PSNR, **{(vs, "heldout", s): v + 0.05 for (vs, arm, s), v in PSNR.items() if arm == "adaptive"}}
+    text = tables_markdown(_fewshot_results(psnr, arms_=("g2fr", "adaptive", "heldout", "nog2fr")))
+    lines = text.splitlines()
+    head = _cells(next(line for line in lines if line.startswith("| scene |")))
+    assert head[2:6] == ["PSNR w/ G2fR (fixed β)", "PSNR w/ G2fR (adaptive)", "PSNR w/ G2fR (held-out)", "PSNR w/o"]
+    assert head[-3:] == ["PSNR gap fixed β - w/o (seeds >= w/o)", "PSNR gap adaptive - w/o (seeds >= w/o)",
+                         "PSNR gap held-out - w/o (seeds >= w/o)"]
+    fps = next(c for c in map(_cells, lines) if c[:2] == ["lego", "fps"])
+    gaps = [psnr[("fps", "heldout", s)] - psnr[("fps", "nog2fr", s)] for s in (0, 1, 2)]
+    assert fps[-1] == f"{mean(gaps):+.2f} ± {stdev(gaps):.2f} (3/3)"
+    assert fps[4] == f"{mean(psnr[('fps', 'heldout', s)] for s in (0, 1, 2)):.2f} ± " \
+                     f"{stdev([psnr[('fps', 'heldout', s)] for s in (0, 1, 2)]):.2f}"
+
+
 def test_fewshot_gap_counts_only_seeds_where_both_arms_finished():
     from statistics import mean
 

@@ -192,25 +192,35 @@ ARM_LABELS = {"fixed": "w/ G2fR (fixed β)", "none": "w/o"}
 
 
 def arm_of(metrics: dict, config: Optional[dict] = None) -> str:
-    """The G²fR arm a run belongs to: fixed | none | "adaptive W/T" (its plateau window and tol)."""
+    """The G²fR arm a run belongs to: fixed | none | "adaptive W/T" (its plateau window and tol) |
+    "heldout W/A/G/D/K" (its check window, checks averaged, min gain, drop and val views)."""
     if not metrics.get("g2fr"):
         return "none"
-    if (metrics.get("g2fr_schedule") or "fixed") == "fixed":
+    schedule = metrics.get("g2fr_schedule") or "fixed"
+    if schedule == "fixed":
         return "fixed"
     c = config or {}
+    if schedule == "heldout":
+        keys = ("g2fr_heldout_window", "g2fr_heldout_average", "g2fr_heldout_min_gain", "g2fr_heldout_drop",
+                "g2fr_heldout_views")
+        return "heldout " + "/".join(str(c.get(k, "?")) for k in keys)
     return f"adaptive {c.get('g2fr_plateau_window', '?')}/{c.get('g2fr_plateau_tol', '?')}"
 
 
 def arm_label(arm: str) -> str:
     if arm in ARM_LABELS:
         return ARM_LABELS[arm]
-    window, tol = arm.split(" ", 1)[1].split("/")
+    kind, params = arm.split(" ", 1)
+    if kind == "heldout":
+        window, average, gain, drop, views = params.split("/")
+        return f"w/ G2fR (held-out, window {window}, mean of {average}, gain {gain}, drop {drop}, {views} val views)"
+    window, tol = params.split("/")
     return f"w/ G2fR (adaptive, window {window}, tol {tol})"
 
 
 def arm_order(arms) -> list[str]:
-    """fixed, the adaptive variants, then the baseline."""
-    return sorted(set(arms), key=lambda a: (a == "none", a != "fixed", a))
+    """fixed, the adaptive variants, the held-out variants, then the baseline."""
+    return sorted(set(arms), key=lambda a: (a == "none", a != "fixed", a.startswith("heldout"), a))
 
 
 def regime_of(row: dict) -> str:

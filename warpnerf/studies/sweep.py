@@ -1,7 +1,7 @@
 """``warpnerf sweep SPEC.toml``: the paper's tables as a restartable grid of runs.
 
-A spec names scenes, models, tasks, arms (G²fR with the fixed eq. 15 schedule, with the adaptive
-schedule, or off), seeds, few-shot view sets and config overrides; it expands into one run per
+A spec names scenes, models, tasks, arms (G²fR with the fixed eq. 15 schedule, with the adaptive or
+the held-out schedule, or off), seeds, few-shot view sets and config overrides; it expands into one run per
 combination, each its own run folder ``<out>/<scene>_<task>_<model>_<arm>_s<seed>`` (few-shot runs of a
 view set other than ``fps`` end in ``_<view set>``), built by ``train.config.build_config`` and trained
 by ``runs.run.run_training``. The arms of a (scene, view set, seed) are paired: same views, same seed
@@ -33,7 +33,7 @@ Spec format (TOML; paths relative to the current directory, like command-line fl
     scenes = ["lego", "mic"]
     models = ["ngp", "mtrf"]        # default ["ngp"]
     tasks = ["pose"]                # default ["pose", "fewshot"]
-    arms = ["g2fr", "nog2fr"]       # default; also "adaptive" (G²fR, levels open on loss plateaus)
+    arms = ["g2fr", "nog2fr"]       # default; also "adaptive" (G²fR, levels open on loss plateaus), "heldout" (on val)
     seeds = [0]                     # default [0]
     view_sets = ["fps", "random"]   # few-shot views, default ["fps"] (farthest-point; random: drawn with the seed)
     data_root = "/data"             # optional (default: $WARPNERF_DATA)
@@ -78,6 +78,7 @@ ARMS: dict[str, dict] = {
     "g2fr": {"g2fr": True, "g2fr_schedule": "fixed"},  # paper eq. 15
     "nog2fr": {"g2fr": False, "g2fr_schedule": "fixed"},
     "adaptive": {"g2fr": True, "g2fr_schedule": "adaptive"},  # levels open when the training loss plateaus
+    "heldout": {"g2fr": True, "g2fr_schedule": "heldout"},  # levels open on val-PSNR plateaus, close on a val drop
 }
 BASELINE_ARM = "nog2fr"
 DEFAULT_VIEW_SET = "fps"

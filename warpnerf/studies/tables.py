@@ -30,9 +30,12 @@ TITLES = {"pose": "Camera-pose optimisation (cf. paper Tab. 1)", "fewshot": "Few
 MODEL_NAMES = {"ngp": "NGP (hash grid)", "mtrf": "Mtrf (multi-resolution CP)"}
 
 # sweep arms in table order: column label, label in a gap column, key of the paper's numbers
-ARM_ORDER = ("g2fr", "adaptive", "nog2fr")
-ARM_LABELS = {"g2fr": "w/ G2fR (fixed β)", "adaptive": "w/ G2fR (adaptive)", "nog2fr": "w/o"}
-GAP_LABELS = {"g2fr": "fixed β", "adaptive": "adaptive"}
+ARM_ORDER = ("g2fr", "adaptive", "heldout", "nog2fr")
+ARM_LABELS = {"g2fr": "w/ G2fR (fixed β)", "adaptive": "w/ G2fR (adaptive)", "heldout": "w/ G2fR (held-out)",
+              "nog2fr": "w/o"}
+GAP_LABELS = {"g2fr": "fixed β", "adaptive": "adaptive", "heldout": "held-out"}
+# the arms of the schedules that need no budget: a row key and a label in the per-scene tables and seed notes
+BUDGETLESS = (("adaptive", "w/ adaptive"), ("heldout", "w/ held-out"))
 PAPER_ARMS = {"g2fr": "w/", "nog2fr": "w/o"}
 BASELINE = "nog2fr"
 VIEW_SET_NOTES = {"fps": "fps (farthest-point over camera centres: the same views for every seed)",
@@ -49,14 +52,16 @@ def scene_label(scene: str, builtin: bool) -> str:
 
 
 def _row_arms(rows: dict) -> list[tuple[str, str]]:
-    """(row key, column label) of the arms of a per-scene table: w/ and w/o always, adaptive when present."""
-    if not any("adaptive" in arms for arms in rows.values()):
+    """(row key, column label) of the arms of a per-scene table: w/ and w/o always, adaptive and held-out when
+    present."""
+    extra = [(arm, ARM_LABELS[arm]) for arm, _ in BUDGETLESS if any(arm in arms for arms in rows.values())]
+    if not extra:
         return [("w/", "w/ G2fR"), ("w/o", "w/o")]
-    return [("w/", ARM_LABELS["g2fr"]), ("adaptive", ARM_LABELS["adaptive"]), ("w/o", "w/o")]
+    return [("w/", ARM_LABELS["g2fr"]), *extra, ("w/o", "w/o")]
 
 
 def format_table(task: str, rows: dict, model: str = "ngp") -> str:
-    """rows: scene -> {"w/": metrics, "w/o": metrics} (and "adaptive": metrics for that arm). Paper
+    """rows: scene -> {"w/": metrics, "w/o": metrics} (and "adaptive", "heldout": metrics of those arms). Paper
     numbers sit in brackets where known (only for dataset scenes: a built-in scene of the same name
     is a different scene, and its cell says so). The pose table ends with the paper's BARF row for
     the scene (rot / trans / PSNR)."""
@@ -268,11 +273,11 @@ def _iters(finished: list) -> str:
 
 
 def _scene_rows(group: list) -> dict:
-    """scene -> {"w/" | "adaptive" | "w/o": metrics averaged over seeds} (pose and full tables)."""
+    """scene -> {"w/" | "adaptive" | "heldout" | "w/o": metrics averaged over seeds} (pose and full tables)."""
     rows: dict = {}
     for scene in dict.fromkeys(r.run.scene for r in group):
         rows[scene] = {}
-        for arm, label in (("g2fr", "w/"), ("adaptive", "adaptive"), ("nog2fr", "w/o")):
+        for arm, label in (("g2fr", "w/"), *((a, a) for a, _ in BUDGETLESS), ("nog2fr", "w/o")):
             ms = [r.metrics for r in group if r.run.scene == scene and r.run.arm == arm and r.metrics]
             if ms:
                 rows[scene][label] = _mean_over_seeds(ms)
@@ -291,7 +296,7 @@ def scene_section(task: str, model: str, group: list) -> tuple[str, str]:
         note += f" The {TRANS_NOTE}."
     if len(seeds) > 1:
         for scene in rows:
-            for arm, label in (("g2fr", "w/"), ("adaptive", "w/ adaptive")):
+            for arm, label in (("g2fr", "w/"), *BUDGETLESS):
                 gaps = seed_gaps(group, scene, arm=arm)
                 if len(gaps) > 1:
                     note += " " + format_seed_gaps(scene, gaps, arm_label=label)
