@@ -19,7 +19,9 @@ JPEG noise and a little shading on a studio sweep. A photograph's border holds n
 at most 10 % of a view's ring lies within 0.04 of its median colour (median 7 %).
 
 :func:`settle_background` applies the choice of ``background`` (:data:`BACKGROUNDS`, the ``--background``
-flag) to a loaded scene (module-level doc of each mode there).
+flag) to a loaded scene (module-level doc of each mode there). What it decided depends on the pixels (the
+border colours, and whether the alpha is 1 everywhere), so a run folder stores it (:class:`SettledBackground`,
+the checkpoint's ``scene_background``) and a cameras-only load, which has no pixel, applies the stored one.
 """
 
 from __future__ import annotations
@@ -166,3 +168,48 @@ def settle_background(scene, mode: Optional[str] = None):
             v.alpha = None  # the trainer composites on scene.background instead of a random colour
     scene.background_note = note
     return scene
+
+
+@dataclass(frozen=True)
+class SettledBackground:
+    """What :func:`settle_background` decided for a scene: the run folder keeps it (the checkpoint's and
+    metrics.json's ``scene_background``, :meth:`to_dict`) so that a cameras-only load
+    (``load_scene(..., pixels=False)``), which has no pixel to detect a background in, gets the background
+    the run trained with (:meth:`apply`)."""
+
+    mode: str  # the --background mode it was settled with (:data:`BACKGROUNDS`; "auto" for unset)
+    colour: tuple[float, float, float]  # scene.background
+    alpha: bool  # whether the views kept their alpha (False: dropped, training composites on ``colour``)
+    note: str  # scene.background_note
+
+    @classmethod
+    def of(cls, scene, mode: Optional[str] = None) -> "SettledBackground":
+        """The decision :func:`settle_background` (with ``mode``) made for the loaded ``scene``."""
+        return cls(mode or "auto", tuple(float(c) for c in scene.background),
+                   all(v.alpha is not None for v in _views(scene)), str(scene.background_note))
+
+    def to_dict(self) -> dict:
+        return {"mode": self.mode, "colour": list(self.colour), "alpha": self.alpha, "note": self.note}
+
+    @classmethod
+    def from_dict(cls, value) -> Optional["SettledBackground"]:
+        """The record :meth:`to_dict` wrote, or None when ``value`` is not one (a run from before runs kept it,
+        or a damaged file)."""
+        if not isinstance(value, dict):
+            return None
+        mode, colour, alpha, note = (value.get(k) for k in ("mode", "colour", "alpha", "note"))
+        if (mode not in BACKGROUNDS or not isinstance(alpha, bool) or not isinstance(note, str)
+                or not isinstance(colour, (list, tuple)) or len(colour) != 3
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0.0 <= c <= 1.0 for c in colour)):
+            return None
+        return cls(mode, tuple(float(c) for c in colour), alpha, note)
+
+    def apply(self, scene):
+        """Settle ``scene`` (loaded, not settled) as this record says, in place, without looking at a pixel;
+        returns it."""
+        scene.background = self.colour
+        if not self.alpha:
+            for v in _views(scene):
+                v.alpha = None
+        scene.background_note = self.note
+        return scene

@@ -25,8 +25,9 @@ import numpy as np
 import torch
 
 from warpnerf.data.errors import DatasetError, check_frames, check_intrinsics, json_number, read_json_object
-from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, downscale_depth, load_parallel, read_image
-from warpnerf.data.scene import Scene, Views
+from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscale_depth, downscaled_size, image_header,
+                                  load_parallel, read_image)
+from warpnerf.data.scene import Scene, Views, stand_in
 from warpnerf.geometry.rayspace import RaySpace
 
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -41,6 +42,7 @@ def load_blender(
     keep_alpha: bool = True,
     name: str | None = None,
     allow_rgb: bool = False,
+    pixels: bool = True,
 ) -> Scene:
     """Load a Blender-layout scene folder into a :class:`Scene` (source "dataset", kind "blender").
 
@@ -54,6 +56,9 @@ def load_blender(
         name: scene name (default: the folder name).
         allow_rgb: accept images without alpha (one warning line). Off by default: the layout
             promises RGBA, and RGB renders on black scored against a white background are garbage.
+        pixels: False: a cameras-only load (:mod:`warpnerf.data.scene`): every image's size and channels
+            come from its header, no pixel is decoded, the images, alpha and depth are stand-ins; the checks
+            of sizes, channels and depth files (existence, size) are those of the full load.
 
     Raises:
         DatasetError: missing folder or file, malformed JSON or missing key, unreadable
@@ -71,7 +76,7 @@ def load_blender(
         path = os.path.join(root, f"transforms_{split}.json")
         if split == "val" and not os.path.isfile(path):
             continue
-        views[split] = _load_split(root, path, downscale, bg, keep_alpha, allow_rgb)
+        views[split] = _load_split(root, path, downscale, bg, keep_alpha, allow_rgb, pixels)
     return Scene(
         name=name or os.path.basename(os.path.normpath(root)),
         source="dataset",
@@ -82,6 +87,7 @@ def load_blender(
         ray_space=RaySpace.euclidean(BLENDER_AABB, BLENDER_NEAR, BLENDER_FAR),
         background=bg,
         root=os.path.abspath(root),
+        pixels=pixels,
     )
 
 
@@ -118,7 +124,26 @@ def read_depth(path: str, depth_scale: float | None) -> np.ndarray:
     return raw.astype(np.float32) / float(depth_scale)
 
 
-def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allow_rgb: bool = False) -> Views:
+def depth_header(path: str) -> tuple[int, int]:
+    """(height, width) of a depth file (16-bit PNG or .npy) without reading its values; DatasetError as
+    :func:`read_depth` for a missing or unreadable file."""
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing depth file {path}")
+    try:
+        if path.endswith(".npy"):
+            shape = np.load(path, mmap_mode="r").shape
+        else:
+            from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
+
+            with Image.open(path) as im:
+                shape = im.size[::-1]
+    except Exception as exc:
+        raise DatasetError(f"cannot read depth file {path}: {exc}") from None
+    return int(shape[0]), int(shape[1] if len(shape) > 1 else 0)
+
+
+def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allow_rgb: bool = False,
+                pixels: bool = True) -> Views:
     meta = read_transforms(path)
     frames = meta["frames"]
     n = len(frames)
@@ -130,6 +155,8 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
         raise DatasetError(f"{path}: only some frames have 'depth_path' (frame {has_depth.index(False)} has none)")
     depth_scale = meta.get("depth_scale")
 
+    if not pixels:
+        return _cameras_only_split(root, path, meta, paths, c2w, downscale, keep_alpha, allow_rgb)
     first = read_image(paths[0])
     h0, w0 = first.shape[:2]
     if first.shape[-1] != 4:
@@ -168,6 +195,21 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
 
     load_parallel(paths, load_one)
 
+    focal_full, cx_full, cy_full = _intrinsics(path, meta, w0, h0)
+    return Views(
+        images=torch.from_numpy(images),
+        c2w=torch.from_numpy(c2w),
+        focal=focal_full / downscale,
+        cx=cx_full / downscale,
+        cy=cy_full / downscale,
+        ids=list(range(n)),
+        depth=None if depth is None else torch.from_numpy(depth),
+        alpha=None if alpha is None else torch.from_numpy(alpha),
+    )
+
+
+def _intrinsics(path: str, meta: dict, w0: int, h0: int) -> tuple[float, float, float]:
+    """(focal, cx, cy) in pixels of the full-size (w0 x h0) images of one transforms file, checked."""
     if "fl_x" in meta:
         focal_full = json_number(path, "fl_x", meta["fl_x"], positive=True)
         cx_full = json_number(path, "cx", meta["cx"]) if "cx" in meta else w0 / 2
@@ -179,13 +221,52 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
         focal_full = 0.5 * w0 / math.tan(0.5 * angle)
         cx_full, cy_full = w0 / 2, h0 / 2
     check_intrinsics(path, w0, h0, focal_full, focal_full, cx_full, cy_full)
+    return focal_full, cx_full, cy_full
+
+
+def _cameras_only_split(root: str, path: str, meta: dict, paths: list[str], c2w: np.ndarray, downscale: int,
+                        keep_alpha: bool, allow_rgb: bool) -> Views:
+    """:func:`_load_split` without a decoded pixel: sizes and channels from the image headers, the same
+    checks and messages, stand-ins for the images, alpha and depth."""
+    frames = meta["frames"]
+    n = len(frames)
+    has_depth = all("depth_path" in fr for fr in frames)
+    heads = [None] * n
+
+    def head(i: int, img_path: str) -> None:
+        heads[i] = image_header(img_path)
+
+    load_parallel(paths, head)
+    h0, w0, c0 = heads[0]
+    if c0 != 4:
+        if not allow_rgb:
+            raise DatasetError(f"{paths[0]} has no alpha channel but the Blender layout promises RGBA "
+                               "(pass --allow-rgb to train on it as is)")
+        print(f"warpnerf: warning: {paths[0]} has no alpha channel; images are used as is", file=sys.stderr)
+    for img_path, (hi, wi, ci) in zip(paths, heads):
+        if (hi, wi) != (h0, w0):
+            raise DatasetError(f"image size mismatch: {img_path} is {wi}x{hi}, expected {w0}x{h0} like {paths[0]}")
+        if (ci == 4) != (c0 == 4):
+            raise DatasetError(f"channel mismatch: {img_path} has {ci} channels, {paths[0]} has {c0}")
+    h, w = downscaled_size(h0, w0, downscale)
+    if has_depth:
+        if meta.get("depth_scale") is None and any(not str(fr["depth_path"]).endswith(".npy") for fr in frames):
+            bad = next(fr["depth_path"] for fr in frames if not str(fr["depth_path"]).endswith(".npy"))
+            raise DatasetError(f"depth file {os.path.normpath(os.path.join(root, str(bad)))} is a PNG but the "
+                               "transforms file has no 'depth_scale'")
+        for fr in frames:
+            d_path = os.path.normpath(os.path.join(root, str(fr["depth_path"])))
+            dh, dw = depth_header(d_path)
+            if (dh, dw) != (h0, w0):
+                raise DatasetError(f"depth size mismatch: {d_path} is {dw}x{dh}, expected {w0}x{h0}")
+    focal_full, cx_full, cy_full = _intrinsics(path, meta, w0, h0)
     return Views(
-        images=torch.from_numpy(images),
+        images=stand_in((n, h, w, 3)),
         c2w=torch.from_numpy(c2w),
         focal=focal_full / downscale,
         cx=cx_full / downscale,
         cy=cy_full / downscale,
         ids=list(range(n)),
-        depth=None if depth is None else torch.from_numpy(depth),
-        alpha=None if alpha is None else torch.from_numpy(alpha),
+        depth=stand_in((n, h, w)) if has_depth else None,
+        alpha=stand_in((n, h, w)) if keep_alpha else None,
     )

@@ -508,6 +508,7 @@ def load_builtin(
     white_background: bool = True,
     counts=None,
     progress: bool = True,
+    pixels: bool = True,
 ) -> Scene:
     """Generate (once) and load a built-in scene (source "builtin", kind "blender"; the unbounded
     ones, :data:`UNBOUNDED`, kind "unbounded" with a contracted ray space; the forward-facing
@@ -521,13 +522,16 @@ def load_builtin(
         counts: (train, val, test) view counts; the defaults follow NeRF-synthetic (100, 100, 200).
             Forward-facing scenes: (views,), default (FF_VIEWS,).
         progress: show a tqdm bar while generating.
+        pixels: False: a cameras-only load (:mod:`warpnerf.data.scene`) of the cached files (a scene not
+            cached yet is generated first).
     """
     folder = ensure_builtin(name, resolution, cache_dir, counts, progress)
     if name in FORWARD_FACING:
-        scene = load_llff(folder, factor=1, downscale=downscale, name=name)
+        scene = load_llff(folder, factor=1, downscale=downscale, name=name, pixels=pixels)
         scene.source = "builtin"
         return scene
-    scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name)
+    scene = load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
+                         pixels=pixels)
     scene.source = "builtin"
     if name in UNBOUNDED:
         scene.kind = "unbounded"

@@ -15,10 +15,10 @@ import torch
 
 from warpnerf.data.distortion import Intrinsics, needs_resampling, resample_to_pinhole, shared_pinhole
 from warpnerf.data.errors import DatasetError, check_camera_spread, check_intrinsics
-from warpnerf.data.images import area_downscale, load_parallel, read_image
+from warpnerf.data.images import area_downscale, image_header, load_parallel, read_image
 from warpnerf.data.normalize import Normalization, bounds_from_points, capture_normalization, every_nth_split, half_fov
 from warpnerf.geometry.rig import classify_rig
-from warpnerf.data.scene import Scene, Views
+from warpnerf.data.scene import Scene, Views, stand_in
 from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 
 
@@ -90,6 +90,7 @@ def build_scene(
     normalize: bool = True,
     unbounded: bool | None = None,
     ndc: bool | None = None,
+    pixels: bool = True,
 ) -> Scene:
     """Assemble a Scene (source "dataset") from registered frames.
 
@@ -113,6 +114,9 @@ def build_scene(
         ndc: LLFF's NDC ray space (the world mapped as the LLFF loader maps it); None: chosen from the
             rig (forward-facing rigs). Without ``normalize`` the capture frame is kept and the ray space is
             a box, or contracted when ``unbounded`` is True.
+        pixels: False: a cameras-only load (:mod:`warpnerf.data.scene`): each image's size is checked against
+            its camera from the file header, nothing is decoded or resampled (the cameras are the shared
+            pinhole either way), the images and alpha are stand-ins.
 
     The applied map is returned in ``scene.normalization`` (a :class:`Normalization`, whose ``framing``
     says which framing and ray space the rig got and why).
@@ -144,15 +148,17 @@ def build_scene(
     if h == 0 or w == 0:
         raise DatasetError(f"downscale factor {downscale} is larger than the images ({w0}x{h0})")
     n = len(frames)
-    images = np.empty((n, h, w, 3), np.float32)
-    alpha = np.ones((n, h, w), np.float32)
     bg = np.asarray((1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0), np.float32)
+
+    def check_size(i: int, path: str, shape) -> None:
+        cam = frames[i].camera
+        if tuple(shape[:2]) != (cam.height, cam.width):
+            raise DatasetError(f"image size mismatch: {path} is {shape[1]}x{shape[0]}, its camera says {cam.width}x{cam.height}")
 
     def load_one(i: int, path: str) -> None:
         cam = frames[i].camera
         img = read_image(path)
-        if img.shape[:2] != (cam.height, cam.width):
-            raise DatasetError(f"image size mismatch: {path} is {img.shape[1]}x{img.shape[0]}, its camera says {cam.width}x{cam.height}")
+        check_size(i, path, img.shape)
         rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
         a = img[..., 3] if img.shape[-1] == 4 else np.ones(img.shape[:2], np.float32)
         # Composite first (linear in (rgb a, a), so resampling afterwards gives the same result).
@@ -163,7 +169,12 @@ def build_scene(
         images[i] = rgba[..., :3]
         alpha[i] = rgba[..., 3]
 
-    load_parallel([fr.path for fr in frames], load_one)
+    if pixels:
+        images = np.empty((n, h, w, 3), np.float32)
+        alpha = np.ones((n, h, w), np.float32)
+        load_parallel([fr.path for fr in frames], load_one)
+    else:
+        load_parallel([fr.path for fr in frames], lambda i, path: check_size(i, path, image_header(path)))
 
     names = [fr.name for fr in frames]
     splits = resolve_split(names, split_lists, holdout, source)
@@ -179,6 +190,10 @@ def build_scene(
 
     def views(sel: list[int]) -> Views:
         sel_t = torch.as_tensor(sel, dtype=torch.long)
+        if not pixels:
+            return Views(images=stand_in((len(sel), h, w, 3)), c2w=torch.from_numpy(c2w_n[sel].astype(np.float32)),
+                         focal=f0 / downscale, cx=cx0 / downscale, cy=cy0 / downscale, ids=list(sel),
+                         alpha=stand_in((len(sel), h, w)))
         return Views(
             images=torch.from_numpy(images)[sel_t],
             c2w=torch.from_numpy(c2w_n[sel].astype(np.float32)),
@@ -199,6 +214,7 @@ def build_scene(
         ray_space=ray_space,
         background=tuple(float(b) for b in bg),
         root=os.path.abspath(root),
+        pixels=pixels,
     )
     scene.normalization = norm  # not a dataclass field: only capture scenes have one
     scene.image_names = names

@@ -462,6 +462,7 @@ def load_colmap(
     name: str | None = None,
     unbounded: bool | None = None,
     ndc: bool | None = None,
+    pixels: bool = True,
 ) -> Scene:
     """Load a COLMAP scene folder (module docstring) into a :class:`Scene` (kind "colmap").
 
@@ -476,6 +477,7 @@ def load_colmap(
             ``framing`` says which framing and ray space the rig got and why).
         unbounded, ndc: the ray space; None: chosen from the rig (forward-facing: NDC, 360°: contracted;
             :func:`warpnerf.data.capture.build_scene`).
+        pixels: False: a cameras-only load (:func:`~warpnerf.data.capture.build_scene`).
 
     Raises:
         DatasetError naming the file: no model folder, unsupported camera model, missing image,
@@ -516,4 +518,4 @@ def load_colmap(
         points = points[np.all(np.isfinite(points), axis=1)]
     return build_scene(frames, points, root, "colmap", images_path, name=name, split_lists=read_split_lists(root),
                        holdout=holdout, downscale=downscale, white_background=white_background, normalize=normalize,
-                       unbounded=unbounded, ndc=ndc)
+                       unbounded=unbounded, ndc=ndc, pixels=pixels)

@@ -1,4 +1,5 @@
-"""Image reading shared by the loaders: decode, check size, area-downscale, in a thread pool."""
+"""Image reading shared by the loaders: decode, check size, area-downscale, in a thread pool; and
+:func:`image_header`, an image's size and channels without decoding it (cameras-only loads)."""
 
 from __future__ import annotations
 
@@ -48,6 +49,30 @@ def read_image(path: str) -> np.ndarray:
     return img.astype(np.float32)
 
 
+# PIL modes read_image keeps as they are, and the channels it returns for them; any other mode is
+# converted to RGBA (4 channels)
+_MODE_CHANNELS = {"L": 1, "LA": 4, "RGB": 3, "RGBA": 4, "I;16": 1}
+
+
+def image_header(path: str) -> tuple[int, int, int]:
+    """(height, width, channels) that :func:`read_image` would return the shape of, read from the file's
+    header without decoding its pixels (PIL opens lazily) for PNG and JPEG; other formats (EXR, BMP,
+    TIFF) are decoded. Raises DatasetError as :func:`read_image` does for a missing or unreadable file."""
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing image {path}")
+    if not path.lower().endswith((".png", ".jpg", ".jpeg")):
+        h, w, c = read_image(path).shape
+        return h, w, c
+    try:
+        from PIL import Image  # lazy: codecs stay out of --help (~0.08 s)
+
+        with Image.open(path) as im:
+            (w, h), mode = im.size, im.mode
+    except Exception as exc:  # as read_image: the user needs the file name, not the type
+        raise DatasetError(f"cannot read image {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    return int(h), int(w), _MODE_CHANNELS.get(mode, 4)
+
+
 def area_downscale(img: np.ndarray, factor: int) -> np.ndarray:
     """Average ``factor`` x ``factor`` blocks of (H, W, ...) -> (H // factor, W // factor, ...).
 
@@ -61,6 +86,15 @@ def area_downscale(img: np.ndarray, factor: int) -> np.ndarray:
         raise DatasetError(f"downscale factor {factor} is larger than the image ({img.shape[1]}x{img.shape[0]})")
     blocks = img[: h * factor, : w * factor].reshape(h, factor, w, factor, *img.shape[2:])
     return blocks.mean(axis=(1, 3), dtype=np.float32)
+
+
+def downscaled_size(height: int, width: int, factor: int) -> tuple[int, int]:
+    """(height, width) of an image after :func:`area_downscale` by ``factor``, with its DatasetError when
+    the factor is larger than the image (cameras-only loads, which downscale no pixels)."""
+    h, w = height // factor, width // factor
+    if h == 0 or w == 0:
+        raise DatasetError(f"downscale factor {factor} is larger than the image ({width}x{height})")
+    return h, w
 
 
 def downscale_depth(depth: np.ndarray, factor: int) -> np.ndarray:

@@ -30,8 +30,9 @@ import numpy as np
 import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w, check_camera_spread
-from warpnerf.data.images import IMAGE_SUFFIXES, area_downscale, load_parallel, read_image
-from warpnerf.data.scene import Scene, Views
+from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscaled_size, image_header, load_parallel,
+                                  read_image)
+from warpnerf.data.scene import Scene, Views, stand_in
 from warpnerf.geometry.rayspace import RaySpace, ndc_extent
 
 LLFF_BD_FACTOR = 0.75
@@ -48,6 +49,7 @@ def load_llff(
     recenter: bool = True,
     name: str | None = None,
     test: str = "every8",
+    pixels: bool = True,
 ) -> Scene:
     """Load an LLFF scene folder into a :class:`Scene` (source "dataset", kind "llff", NDC ray space).
 
@@ -62,6 +64,8 @@ def load_llff(
         name: scene name (default: the folder name).
         test: "every8": every ``holdout``-th image is a test view (ids 0, holdout, ...; NeRF);
             "last10": the last ``int(0.1 * N)`` images (at least one) by file name (BARF, GARF).
+        pixels: False: a cameras-only load (:mod:`warpnerf.data.scene`): image sizes from the file headers
+            (the same checks), no pixel decoded, stand-ins for the images and alpha.
 
     Returns a scene whose ``train``/``test`` views hold (N, H, W, 3) images, OpenGL c2w, and
     ``val`` None, and an NDC ray space for the views' intrinsics (box around the training rays; module doc).
@@ -100,26 +104,44 @@ def load_llff(
         raise DatasetError(f"{pb_path}: height, width, focal of pose 0 must be positive, got {hwf.tolist()}")
 
     paths = _image_paths(root, factor, len(poses))
-    first = read_image(paths[0])
-    h_img, w_img = first.shape[:2]
+    if pixels:
+        first = read_image(paths[0])
+        h_img, w_img = first.shape[:2]
+    else:
+        heads = [None] * len(paths)
+
+        def head(i: int, path: str) -> None:
+            heads[i] = image_header(path)
+
+        load_parallel(paths, head)
+        h_img, w_img = heads[0][:2]
     if abs(h_img - hwf[0] / factor) > 1.0 or abs(w_img - hwf[1] / factor) > 1.0:
         raise DatasetError(
             f"{paths[0]} is {w_img}x{h_img} but poses_bounds.npy says {hwf[1]:.0f}x{hwf[0]:.0f} / {factor} "
             f"= {hwf[1] / factor:.0f}x{hwf[0] / factor:.0f}"
         )
     h, w = h_img // downscale, w_img // downscale
-    images = np.empty((len(paths), h, w, 3), np.float32)
 
-    def load_one(i: int, path: str) -> None:
-        img = first if i == 0 else read_image(path)
-        if img.shape[:2] != (h_img, w_img):
+    def check_size(path: str, shape) -> None:
+        if tuple(shape[:2]) != (h_img, w_img):
             raise DatasetError(
-                f"image size mismatch: {path} is {img.shape[1]}x{img.shape[0]}, expected {w_img}x{h_img} like {paths[0]}"
+                f"image size mismatch: {path} is {shape[1]}x{shape[0]}, expected {w_img}x{h_img} like {paths[0]}"
             )
-        rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
-        images[i] = area_downscale(rgb, downscale)
 
-    load_parallel(paths, load_one)
+    if pixels:
+        images = np.empty((len(paths), h, w, 3), np.float32)
+
+        def load_one(i: int, path: str) -> None:
+            img = first if i == 0 else read_image(path)
+            check_size(path, img.shape)
+            rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, -1)
+            images[i] = area_downscale(rgb, downscale)
+
+        load_parallel(paths, load_one)
+    else:
+        for path, shape in zip(paths, heads):
+            check_size(path, shape)
+        h, w = downscaled_size(h_img, w_img, downscale)
 
     c2w = llff_to_opengl(poses[:, :, :4])
     scale = 1.0 / (bounds.min() * bd_factor)
@@ -140,7 +162,7 @@ def load_llff(
 
     def views(sel: np.ndarray) -> Views:
         return Views(
-            images=torch.from_numpy(images[sel]),
+            images=torch.from_numpy(images[sel]) if pixels else stand_in((len(sel), h, w, 3)),
             c2w=torch.from_numpy(c2w[sel].astype(np.float32)),
             focal=float(focal),
             cx=w / 2.0,
@@ -150,7 +172,7 @@ def load_llff(
             # targets stay as they are and transmittance left at a ray's end is penalised, so the
             # field becomes opaque instead of rendering dark regions as see-through (instant-ngp;
             # the capture loader does the same). fern full: +0.8 dB test PSNR (docs/studies/2026-12-07-forward-facing-preset.md)
-            alpha=torch.ones(len(sel), h, w),
+            alpha=torch.ones(len(sel), h, w) if pixels else stand_in((len(sel), h, w)),
         )
 
     return Scene(
@@ -168,6 +190,7 @@ def load_llff(
         # leaves little of it.
         background=(0.0, 0.0, 0.0),
         root=os.path.abspath(root),
+        pixels=pixels,
     )
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-from warpnerf.data.background import BACKGROUNDS, FIXED, settle_background
+from warpnerf.data.background import BACKGROUNDS, FIXED, SettledBackground, settle_background
 from warpnerf.data.blender import load_blender
 from warpnerf.data.builtin import FORWARD_FACING, GENERATOR_VERSION, builtin_scenes, cache_root, load_builtin
 from warpnerf.data.errors import DatasetError
@@ -147,6 +147,8 @@ def load_scene(
     unbounded: bool | None = None,
     ndc: bool | None = None,
     background: str | None = None,
+    pixels: bool = True,
+    settled: SettledBackground | None = None,
 ) -> Scene:
     """Load scene ``name`` from the data root if it is there, else the built-in scene of that name.
 
@@ -171,6 +173,13 @@ def load_scene(
             :func:`~warpnerf.data.background.settle_background`; "white" / "black" also choose what images
             with alpha are composited on (over ``white_background``).
 
+        pixels: False: a cameras-only load (:mod:`warpnerf.data.scene`; for a viewer, which never trains):
+            sizes from the image headers, no pixel decoded or resampled, stand-ins for the images, alpha and
+            depth. Everything else (cameras, intrinsics, normalisation, bounds, ray space, splits, ids, checks)
+            is the full load's. The background cannot be detected without pixels: ``settled`` is applied instead.
+        settled: with ``pixels`` False (and only then), the :class:`~warpnerf.data.background.SettledBackground`
+            the full load settled (a run folder's record); its mode must be ``background``'s.
+
     The scene's ``background_note`` says what was chosen (empty for images with alpha and "auto").
 
     Raises:
@@ -178,15 +187,20 @@ def load_scene(
     """
     if background is not None and background not in BACKGROUNDS:
         raise DatasetError(f"unknown background '{background}': expected one of {', '.join(BACKGROUNDS)}")
+    if pixels == (settled is not None):
+        raise ValueError("a cameras-only load (pixels=False) takes the settled background (settled=...), "
+                         "a full load settles it from the pixels")
+    if settled is not None and settled.mode != (background or "auto"):
+        raise ValueError(f"the settled background was chosen by --background {settled.mode}, not {background or 'auto'}")
     if background in FIXED:
         white_background = background == "white"
-    return settle_background(_load(name, data_root, downscale, splits, white_background, builtin_resolution,
-                                   cache_dir, llff_factor, llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc),
-                             background)
+    scene = _load(name, data_root, downscale, splits, white_background, builtin_resolution, cache_dir, llff_factor,
+                  llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc, pixels)
+    return settle_background(scene, background) if pixels else settled.apply(scene)
 
 
 def _load(name, data_root, downscale, splits, white_background, builtin_resolution, cache_dir, llff_factor,
-          llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc) -> Scene:
+          llff_holdout, llff_test, progress, allow_rgb, unbounded, ndc, pixels=True) -> Scene:
     """:func:`load_scene` before the background is settled."""
     root = data_root_from(data_root)
     hit = find_dataset(name, root)
@@ -198,19 +212,20 @@ def _load(name, data_root, downscale, splits, white_background, builtin_resoluti
                                f"--ndc / --no-ndc choose for COLMAP and transforms.json captures")
         if layout == "blender":
             return load_blender(folder, downscale=downscale, splits=splits, white_background=white_background, name=name,
-                                allow_rgb=allow_rgb)
+                                allow_rgb=allow_rgb, pixels=pixels)
         if layout == "transforms":
             from warpnerf.data.transforms_json import load_transforms_json  # lazy: stays out of --help (it brings the COLMAP reader)
 
             return load_transforms_json(folder, downscale=downscale, holdout=llff_holdout,
-                                        white_background=white_background, name=name, unbounded=unbounded, ndc=ndc)
+                                        white_background=white_background, name=name, unbounded=unbounded, ndc=ndc,
+                                        pixels=pixels)
         if layout == "colmap":
             from warpnerf.data.colmap import load_colmap  # lazy: the COLMAP reader stays out of --help
 
             return load_colmap(folder, downscale=downscale, holdout=llff_holdout, white_background=white_background,
-                               name=name, unbounded=unbounded, ndc=ndc)
+                               name=name, unbounded=unbounded, ndc=ndc, pixels=pixels)
         return load_llff(folder, factor=llff_factor, holdout=llff_holdout, downscale=downscale, name=name,
-                         test=llff_test)
+                         test=llff_test, pixels=pixels)
     if name in builtin_scenes():
         if ndc is not None and ndc != (name in FORWARD_FACING):
             raise DatasetError(f"the built-in scene '{name}' trains {'in NDC' if name in FORWARD_FACING else 'without NDC'} "
@@ -223,6 +238,7 @@ def _load(name, data_root, downscale, splits, white_background, builtin_resoluti
             splits=splits,
             white_background=white_background,
             progress=progress,
+            pixels=pixels,
         )
     datasets = sorted(dataset_scenes(root))
     where = (

@@ -29,7 +29,7 @@ import numpy as np
 from warpnerf.data.capture import Frame, build_scene
 from warpnerf.data.distortion import Intrinsics
 from warpnerf.data.errors import DatasetError, check_frames, json_number, read_json_object
-from warpnerf.data.images import IMAGE_SUFFIXES, read_image
+from warpnerf.data.images import IMAGE_SUFFIXES, image_header
 from warpnerf.data.scene import Scene
 
 TRANSFORMS_FILE = "transforms.json"
@@ -48,7 +48,7 @@ def read_transforms_json(path: str) -> dict:
 
 
 def frame_intrinsics(meta: dict, fr: dict, image_path: str, source: str) -> Intrinsics:
-    """Intrinsics of one frame: its own keys over the top-level ones; size from the image if absent."""
+    """Intrinsics of one frame: its own keys over the top-level ones; size from the image's header if absent."""
     def where(k: str) -> str:
         return f"{source} (frame {fr['file_path']})" if k in fr else source
 
@@ -58,8 +58,7 @@ def frame_intrinsics(meta: dict, fr: dict, image_path: str, source: str) -> Intr
 
     w, h = get("w", positive=True, integer=True), get("h", positive=True, integer=True)
     if w is None or h is None:
-        img = read_image(image_path)
-        h, w = img.shape[:2]
+        h, w = image_header(image_path)[:2]
     w, h = int(w), int(h)
     if get("k4"):
         raise DatasetError(f"{source}: frame {fr['file_path']} has k4 (fisheye distortion), which is not supported")
@@ -107,6 +106,7 @@ def load_transforms_json(
     name: str | None = None,
     unbounded: bool | None = None,
     ndc: bool | None = None,
+    pixels: bool = True,
 ) -> Scene:
     """Load a single-``transforms.json`` scene folder (module docstring) into a Scene (kind "transforms").
 
@@ -140,4 +140,4 @@ def load_transforms_json(
     return build_scene(frames, None, root, "transforms", path, name=name, split_lists=lists, holdout=holdout,
                        downscale=downscale, white_background=white_background,
                        aabb_scale=float(aabb_scale) if aabb_scale else None, normalize=normalize,
-                       unbounded=unbounded, ndc=ndc)
+                       unbounded=unbounded, ndc=ndc, pixels=pixels)
