@@ -65,14 +65,34 @@ def test_render_function_returns_the_view_of_a_camera_state(chair_run):
     assert -10 * np.log10(mse) > 14
 
 
-def test_the_viewer_loads_what_load_run_loads_but_keeps_no_image(chair_run):
+def _refuse_decoding(m: pytest.MonkeyPatch) -> None:
+    """Any image decoded (PIL, imageio) fails; opening one for its header does not decode it."""
+    import imageio.v3 as iio
+    import PIL.Image
+    import PIL.ImageFile
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the viewer's start-up decoded an image")
+
+    m.setattr(PIL.ImageFile.ImageFile, "load", refuse)
+    m.setattr(PIL.Image.Image, "load", refuse)
+    m.setattr(iio, "imread", refuse)
+
+
+def test_the_viewer_loads_what_load_run_loads_but_keeps_no_image(chair_run, monkeypatch):
     """load_for_viewing: the same cameras, intrinsics, ray space, background and field as load_run, without
-    the val split, the images (zero-stride stand-ins of the same shape) or Adam's moments."""
+    the val split, the images (zero-stride stand-ins of the same shape, no image decoded: the scene is loaded
+    cameras-only, with the background the checkpoint records) or Adam's moments."""
     from warpnerf.runs.folder import load_run
 
     ref = load_run(str(chair_run), "cpu")
-    viewer = RunViewer(str(chair_run), "cpu", preview_height=16)
+    with monkeypatch.context() as m:
+        _refuse_decoding(m)
+        viewer = RunViewer(str(chair_run), "cpu", preview_height=16)
     tr = viewer.trainer
+    assert tr.cameras_only and not tr.scene.pixels and ref.scene.pixels
+    assert tr.scene.background_note == ref.scene.background_note
+    assert (tr.scene.train.alpha is None) == (ref.scene.train.alpha is None)
     assert torch.equal(tr.train_c2w, ref.train_c2w) and torch.equal(tr.scene.test.c2w, ref.scene.test.c2w)
     for attr in ("focal", "cx", "cy", "height", "width"):
         assert getattr(tr.views, attr) == getattr(ref.views, attr)
@@ -88,6 +108,49 @@ def test_the_viewer_loads_what_load_run_loads_but_keeps_no_image(chair_run):
     a = tr.renderer.render_image(ref.train_c2w[2], 12, 12, 15.0, 6.0, 6.0, weights)
     b = ref.renderer.render_image(ref.train_c2w[2], 12, 12, 15.0, 6.0, 6.0, weights)
     assert torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["depth"], b["depth"])
+
+
+def test_the_run_records_its_background_and_older_runs_are_decoded(chair_run, tmp_path, capsys):
+    """The checkpoint and metrics.json record the background training settled (warpnerf.data.background:
+    detecting it needs the pixels); a run from before they did is loaded in full, and views the same."""
+    from warpnerf.data.background import SettledBackground
+    from warpnerf.outputs.viewer import load_for_viewing
+    from warpnerf.runs.folder import load_run
+
+    ref = load_run(str(chair_run), "cpu")
+    want = SettledBackground.of(ref.scene, ref.cfg.background).to_dict()
+    assert torch.load(chair_run / "checkpoint.pt")["scene_background"] == want
+    assert json.loads((chair_run / "metrics.json").read_text())["scene_background"] == want
+    run = tmp_path / "old"
+    shutil.copytree(chair_run, run, ignore=shutil.ignore_patterns("renders", "*.mp4", "*.gif"))
+    state = torch.load(run / "checkpoint.pt")
+    del state["scene_background"]
+    torch.save(state, run / "checkpoint.pt")
+    old = load_for_viewing(str(run), "cpu")
+    assert not old.cameras_only and not old.scene.pixels and old.scene.val is None
+    assert "trained before checkpoints recorded the background" in capsys.readouterr().err
+    assert set(old.images.stride()) == {0} and set(old.scene.test.images.stride()) == {0}
+    assert old.scene.background == ref.scene.background and old.scene.ray_space == ref.scene.ray_space
+    weights = ref.level_weights(ref.step)
+    a = old.renderer.render_image(ref.scene.test.c2w[1], 12, 12, 15.0, 6.0, 6.0, weights)
+    b = ref.renderer.render_image(ref.scene.test.c2w[1], 12, 12, 15.0, 6.0, 6.0, weights)
+    assert torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["depth"], b["depth"])
+
+
+def test_a_run_of_the_heldout_schedule_is_viewed_with_its_val_cameras(chair_run, tmp_path, monkeypatch):
+    """The held-out G²fR schedule's trainer reads the val split (Trainer refuses a scene without one): the viewer
+    keeps it for such a run, cameras-only like the rest."""
+    from warpnerf.cli.app import main
+    from warpnerf.outputs.viewer import load_for_viewing
+
+    run = tmp_path / "heldout"
+    assert main(["train", "--scene", "chair", "--task", "full", "--builtin-resolution", "32", "--iters", "4",
+                 "--eval-max-views", "1", "--video-frames", "0", "--quiet", "--config", str(chair_run.parent / "tiny.toml"),
+                 "--g2fr", "--g2fr-schedule", "heldout", "--out", str(run)]) == 0
+    with monkeypatch.context() as m:
+        _refuse_decoding(m)
+        tr = load_for_viewing(str(run), "cpu")
+    assert tr.cameras_only and tr.scene.val is not None and set(tr.scene.val.images.stride()) == {0}
 
 
 def test_render_modes_level_mask_and_cancellable_bands(chair_run, monkeypatch):

@@ -27,8 +27,11 @@ Attaching to a training run: ``warpnerf train --checkpoint-every 100`` writes ``
 (with its step, so the G²fR level weights match) every 100 steps; the viewer polls the file's
 modification time and reloads it, re-rendering every connected browser.
 
-Start-up: the viewer renders and never trains, so :func:`load_for_viewing` reads no val split and
-drops the images and the optimizer state once loaded (their memory is given back).
+Start-up: the viewer renders and never trains, so :func:`load_for_viewing` reads no val split, no
+optimizer state and no pixel: the scene is loaded cameras-only (poses, intrinsics, image sizes from the
+file headers, normalisation and ray space as training had them; the images are zero-stride stand-ins)
+with the background the run's checkpoint records, since the detection of a background needs the pixels.
+Runs from before checkpoints recorded it are loaded in full and their images dropped afterwards.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import ctypes
 import gc
 import math
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -47,10 +51,11 @@ from urllib.parse import urlsplit
 import numpy as np
 import torch
 
+from warpnerf.data.scene import stand_in_like
 from warpnerf.geometry.cameras import map_gt_poses_to_estimate_frame
 from warpnerf.model.g2fr import LevelWeights
 from warpnerf.runs.folder import (CHECKPOINT, CONFIG, METRICS, RunLock, load_run, load_state_checked,
-                                  read_checkpoint)
+                                  read_checkpoint, read_run_config)
 from warpnerf.runs.video import look_target
 from warpnerf.train.config import ConfigError
 from warpnerf.train.evaluate import depth_to_rgb
@@ -232,11 +237,6 @@ def masked_level_weights(weights: Optional[LevelWeights], levels: Optional[int])
     return LevelWeights(tuple(w if m < int(levels) else 0.0 for m, w in enumerate(weights.values)))
 
 
-def _stand_in(t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
-    # same shape, dtype and device, no memory: a zero-stride view of one zero
-    return None if t is None else torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
-
-
 def _release_memory() -> None:
     gc.collect()
     try:  # glibc keeps freed heap pages unless asked to return them
@@ -247,21 +247,32 @@ def _release_memory() -> None:
 
 def load_for_viewing(run_dir: str, device: str = "auto", progress: bool = False) -> Trainer:
     """:func:`~warpnerf.runs.folder.load_run` for a viewer, which renders and never trains: the same
-    scene (same checks) but without its val split, and once loaded without the views' images
-    (zero-stride stand-ins keep their shapes), the error map and the optimizer's moments. The
-    training and test cameras, intrinsics, ray space and background are those ``load_run`` gives."""
+    scene (same checks) but without its val split (kept, without pixels, for a run of the held-out G²fR
+    schedule, whose trainer reads it), its pixels or the optimizer's moments. The scene is
+    loaded cameras-only (``load_run(..., pixels=False)``): image sizes from the file headers, no image
+    decoded, zero-stride stand-ins of the images' shapes, the background the checkpoint records. The
+    training and test cameras, intrinsics, ray space and background are those ``load_run`` gives.
+
+    A run whose checkpoint predates the recorded background is loaded in full (its images decoded, so
+    its background is detected as in training; one line on stderr says so), then its images, the
+    error map and the optimizer's moments are dropped (their memory given back). ``trainer.cameras_only``
+    says which it was."""
     for p in (os.path.join(run_dir, CONFIG), os.path.join(run_dir, CHECKPOINT)):
         if not os.path.exists(p):
             raise ConfigError(f"not a run folder with a checkpoint: {p} is missing")
-    trainer = load_run(run_dir, device, progress, splits=("train", "test"), optimizer=False)
+    cfg = read_run_config(run_dir)
+    # the held-out G2fR schedule's trainer reads val views (cameras-only, they cost nothing)
+    val = ("val",) if cfg.g2fr and cfg.g2fr_schedule == "heldout" else ()
+    trainer = load_run(run_dir, device, progress, splits=("train", *val, "test"), optimizer=False, pixels=False)
     trainer.error_map = None
-    scene = trainer.scene
-    for views in (trainer.views, scene.train, scene.test, scene.val):
-        if views is not None:
-            views.images, views.alpha, views.depth = (_stand_in(views.images), _stand_in(views.alpha),
-                                                      _stand_in(views.depth))
-    trainer.images, trainer.alpha = _stand_in(trainer.images), _stand_in(trainer.alpha)
-    _release_memory()
+    trainer.cameras_only = not trainer.scene.pixels  # for the start-up benchmark (warpnerf.outputs.viewer_bench)
+    if trainer.scene.pixels:  # an older run: loaded in full, its pixels dropped now
+        print(f"warpnerf: note: {run_dir} was trained before checkpoints recorded the background: its images were "
+              "decoded to detect it as training did", file=sys.stderr)
+        trainer.scene.drop_pixels()
+        trainer.views.drop_pixels()  # the task's own Views for a subset of the training views
+        trainer.images, trainer.alpha = stand_in_like(trainer.images), stand_in_like(trainer.alpha)
+        _release_memory()
     return trainer
 
 

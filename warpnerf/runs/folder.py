@@ -25,6 +25,7 @@ from typing import Optional
 import tomli_w
 
 from warpnerf import device as devmod
+from warpnerf.data.background import SettledBackground, is_opaque
 from warpnerf.data.resolve import data_root_from, load_scene
 from warpnerf.train.checkpoint import CheckpointError, atomic_write_text, load_checkpoint
 from warpnerf.train.config import ConfigError, TrainConfig, build_config, load_toml
@@ -273,13 +274,22 @@ def read_checkpoint(run_dir: str, map_location=None) -> dict:
 ALL_SPLITS = ("train", "val", "test")
 
 
-def load_scene_for(cfg: TrainConfig, progress: bool = True, splits: tuple[str, ...] = ALL_SPLITS):
+def load_scene_for(cfg: TrainConfig, progress: bool = True, splits: tuple[str, ...] = ALL_SPLITS,
+                   settled: Optional[SettledBackground] = None):
     """The scene ``cfg`` trains on (name, data root, downscale, ...), loaded or generated; ``splits``: the
-    splits to read (a viewer skips val)."""
+    splits to read (a viewer skips val). With ``settled`` (the background a run stored: :func:`stored_background`)
+    a cameras-only load: no pixel is read, the images are stand-ins (``load_scene(..., pixels=False)``)."""
     return load_scene(cfg.scene, data_root=cfg.data_root, downscale=cfg.downscale,
                       builtin_resolution=cfg.builtin_resolution, progress=progress, allow_rgb=cfg.allow_rgb,
                       unbounded=cfg.unbounded, ndc=cfg.ndc, llff_test=cfg.llff_test, background=cfg.background,
-                      splits=splits)
+                      splits=splits, pixels=settled is None, settled=settled)
+
+
+def stored_background(cfg: TrainConfig, state: dict) -> Optional[SettledBackground]:
+    """The background a run trained with, as its checkpoint ``state`` records it (``scene_background``, written
+    since runs store it), or None: a run from before, or a record that does not fit ``cfg``'s --background."""
+    settled = SettledBackground.from_dict(state.get("scene_background"))
+    return settled if settled is not None and settled.mode == (cfg.background or "auto") else None
 
 
 def resolve_data_root(cfg: TrainConfig) -> None:
@@ -318,9 +328,15 @@ def load_state_checked(trainer: Trainer, state: dict, run_dir: str, optimizer: b
 
 
 def load_run(run_dir: str, device: str = "auto", progress: bool = False, splits: tuple[str, ...] = ALL_SPLITS,
-             optimizer: bool = True) -> Trainer:
+             optimizer: bool = True, pixels: bool = True) -> Trainer:
     """A :class:`~warpnerf.train.trainer.Trainer` holding a finished run's field, occupancy grid and poses
     (``splits`` and ``optimizer``: see :func:`load_scene_for` and :func:`load_state_checked`).
+
+    ``pixels=False``: a cameras-only scene (for a viewer, which never trains): its images are stand-ins on the
+    device and nothing is decoded, with the background the checkpoint records (:func:`stored_background`). A run
+    from before checkpoints recorded it is loaded in full instead (its pixels decoded: the background is
+    detected from them as in training, over the splits training read: val too when an opaque Blender-layout
+    scene is detected on), and ``trainer.scene.pixels`` is True.
 
     The checkpoint is read (and checked) before the scene loads, so a bad one fails at once."""
     cfg_path, ckpt = os.path.join(run_dir, CONFIG), os.path.join(run_dir, CHECKPOINT)
@@ -333,8 +349,18 @@ def load_run(run_dir: str, device: str = "auto", progress: bool = False, splits:
     cfg.out = run_dir
     dev = devmod.resolve_device(cfg.device)
     state = read_checkpoint(run_dir, map_location=devmod.torch_device(dev))
-    scene = load_scene_for(cfg, progress, splits)
+    settled = None if pixels else stored_background(cfg, state)
+    scene = load_scene_for(cfg, progress, splits, settled)
+    if (not pixels and settled is None and (cfg.background or "auto") == "auto" and "val" not in splits
+            and scene.kind in ("blender", "unbounded") and is_opaque(scene)):
+        # training detected the background on the val split's views too (a Blender-layout scene reads val only
+        # when asked); without them the detection could settle another colour. Images with transparency were
+        # never looked at: no second load for them.
+        scene = load_scene_for(cfg, progress, tuple(s for s in ALL_SPLITS if s in splits or s == "val"))
+        scene.val = None
     check_scene(run_dir, scene, (read_metrics(run_dir) or {}).get("scene_source") or state.get("scene_source"))
+    if not scene.pixels:  # stand-ins on the device: the trainer's .to(device) then copies nothing
+        scene.drop_pixels(devmod.torch_device(dev))
     trainer = Trainer(cfg, scene, make_task(cfg), dev)
     load_state_checked(trainer, state, run_dir, optimizer)
     return trainer

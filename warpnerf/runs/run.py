@@ -23,6 +23,7 @@ from typing import Optional
 import torch
 
 from warpnerf import device as devmod
+from warpnerf.data.background import SettledBackground
 from warpnerf.data.errors import DatasetError
 from warpnerf.runs import record, video
 from warpnerf.runs.folder import (CHECKPOINT, MARKER, RESULT_NEUTRAL_KEYS, RunLock, check_scene, clear_run_folder,
@@ -206,6 +207,9 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
     if mode == "resume" and os.path.exists(ckpt_path):  # a bad checkpoint fails before the scene loads
         state = read_checkpoint(out_dir, map_location="cpu")
     scene = load_scene_for(cfg, progress)
+    # what the background detection decided from the pixels, for the checkpoint and metrics.json: a viewer's
+    # cameras-only load has no pixel to decide it from (warpnerf.data.background.SettledBackground)
+    settled = SettledBackground.of(scene, cfg.background).to_dict()
     if mode == "resume":
         check_scene(out_dir, scene, (state or {}).get("scene_source"))
     task = make_task(cfg)
@@ -250,7 +254,8 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
 
     def save() -> None:
         save_checkpoint(ckpt_path, {**trainer.state_dict(), "config_hash": config_hash(cfg),
-                                    "scene_source": scene.source})  # view/render/eval compare it
+                                    "scene_source": scene.source,  # view/render/eval compare it
+                                    "scene_background": settled})  # a viewer's cameras-only load applies it
 
     def checkpoint_due(n_done: int) -> bool:
         # for --resume, and for 'warpnerf view' to follow the run
@@ -320,6 +325,7 @@ def _run_locked(cfg: TrainConfig, mode: str, device: str, progress: bool, overwr
         "train_view_ids": trainer.views.ids,
         "scene": scene.name,
         "scene_source": scene.source,
+        "scene_background": settled,
         "task": cfg.task,
         "model": cfg.model,
         "g2fr": cfg.g2fr,
