@@ -153,6 +153,27 @@ def test_a_run_of_the_heldout_schedule_is_viewed_with_its_val_cameras(chair_run,
     assert tr.cameras_only and tr.scene.val is not None and set(tr.scene.val.images.stride()) == {0}
 
 
+def test_bench_viewer_times_fresh_processes_and_records(chair_run, tmp_path, capsys):
+    from warpnerf.cli.app import main
+
+    records = tmp_path / "records"
+    assert main(["bench", "viewer", "--run", str(chair_run), "--repeats", "1", "--json", "--device", "cpu",
+                 "--threads", "1", "--record", "viewer_start", "--records-dir", str(records)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    res = json.loads(out[0])
+    assert res["cameras_only"] and res["scene"] == "chair" and res["repeats"] == 1 and res["threads"] == 1
+    assert res["load_seconds_first"] > 0 and res["peak_rss_mb_max"] > 50 and res["image_size"] == [32, 32]
+    assert len(res["load_seconds"]) == len(res["process_seconds"]) == len(res["peak_rss_mb"]) == 1
+    assert out[1].startswith(f"record: {records / 'viewer_start.json'}")
+    from warpnerf.runs.record import load_record
+
+    rec = load_record(str(records / "viewer_start.json"))
+    assert rec["kind"] == "bench" and rec["bench"]["what"] == "viewer" and rec["runs"] == []
+    assert rec["source_run"]["metrics"]["scene"] == "chair"
+    assert main(["bench", "step", "--record", "x", "--records-dir", str(records)]) == 2
+    assert "bench viewer records them" in capsys.readouterr().err
+
+
 def test_render_modes_level_mask_and_cancellable_bands(chair_run, monkeypatch):
     viewer = RunViewer(str(chair_run), "cpu", preview_height=24)
     tr = viewer.trainer

@@ -79,7 +79,25 @@ def cmd_sweep(args) -> int:
 def cmd_bench(args) -> int:
     from warpnerf.studies import bench  # lazy: keeps --help fast (torch, Warp)
 
-    _setup_device(args)
+    dev = _setup_device(args)
+    if args.record and args.what != "viewer":
+        raise UserError(f"--record: warpnerf bench {args.what} prints its numbers only; bench viewer records them")
+    if args.what == "viewer":
+        from warpnerf.outputs import viewer_bench  # lazy: keeps --help fast
+
+        if not args.run:
+            raise UserError("warpnerf bench viewer needs --run RUN (a run folder with a checkpoint)")
+        if args.repeats < 1:
+            raise UserError(f"--repeats {args.repeats}: need at least 1")
+        recorder = Recorder(args, "bench")  # a record that could not be written fails before any work (one line)
+        try:
+            res = viewer_bench.bench_viewer(args.run, repeats=args.repeats, device=dev, threads=args.threads)
+        except RuntimeError as e:
+            raise UserError(str(e)) from None
+        print(json.dumps(res) if args.json else viewer_bench.format_viewer(res))
+        if recorder.path:  # the benchmark's numbers and the run it loaded (its metrics and config)
+            recorder.write([], extra={"bench": {"what": "viewer", **res}, "source_run": record.read_run_files(args.run)})
+        return 0
     if args.what == "encoding":
         res = bench.bench_encoding(n=args.n, levels=args.levels, log2_table_size=args.log2_table_size,
                                    repeats=args.repeats, device=args.device, model=args.model,
@@ -301,21 +319,25 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
     sub.choices["report"].set_defaults(func=report.run_cli)
 
     b = sub.add_parser("bench", help="benchmarks that print measured numbers")
-    b.add_argument("what", choices=["encoding", "step", "render"], help="what to benchmark")
+    b.add_argument("what", choices=["encoding", "step", "render", "viewer"],
+                   help="what to benchmark (viewer: warpnerf view's start-up, load_for_viewing, in fresh processes)")
     b.add_argument("--n", type=int, default=262144, help="points per call")
     b.add_argument("--levels", type=int, default=16)
     b.add_argument("--log2-table-size", type=int, default=19)
     b.add_argument("--model", default="ngp", choices=list(MODELS), help="encoding: hash grid or Mtrf CP lines")
-    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--repeats", type=int, default=5, help="timed repeats (viewer: fresh processes, the first "
+                                                            "reported apart)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--no-roofline", action="store_true",
                    help="skip measuring the machine's gather and GEMM rates next to the benchmark")
     b.add_argument("--data-root", default=None, help="step: use this dataset's lego instead of the built-in chair")
-    b.add_argument("--run", default=None, help="render: the finished run folder whose test views are rendered")
+    b.add_argument("--run", default=None, help="render: the finished run folder whose test views are rendered; "
+                                                "viewer: the run folder (with a checkpoint) the viewer loads")
     b.add_argument("--views", type=int, default=5, help="render: test views timed (spread over the test set)")
     b.add_argument("--every-sample", action="store_true",
                    help="render: early ray termination off (every marched sample evaluated), the reference")
     _add_device(b)
+    add_record_flags(b, "viewer only: the benchmark's numbers and the run's metrics and config")
     b.set_defaults(func=cmd_bench)
     add_output_commands(sub)  # render, export, view (commands on a finished run)
     doctor.add_parser(sub)  # machine report; imports torch/warp only when it runs

@@ -1,7 +1,7 @@
 """Results records: the file behind every figure the project reports.
 
 A record is one JSON file, ``docs/results/<name>.json``, written by ``--record NAME`` on ``train``,
-``table``, ``sweep`` and ``export``. It holds what it takes to check the figure: the command line, the commit
+``table``, ``sweep``, ``export`` and ``bench viewer``. It holds what it takes to check the figure: the command line, the commit
 (and whether the tree had uncommitted changes), the date, the machine, whether the run had the CPU
 to itself (measured, not declared), and each run's ``metrics.json`` and ``config.toml``.
 ``warpnerf report`` renders docs/results.md and the README's headline table from these files.
@@ -35,8 +35,10 @@ FORMAT = "warpnerf-record-1"
 # run: `train --record`; table: `table`/`sweep --record`; runs: `warpnerf record`, finished run folders
 # recorded after they trained (their commit and CPU share come from each run's metrics.json);
 # export: `export --record`, geometry exported from a finished run: no "runs" (it trained nothing), its
-# "export" holds the counts, time and peak memory (<out>.export.json) and "source_run" the run's files
-KINDS = ("run", "table", "runs", "export")
+# "export" holds the counts, time and peak memory (<out>.export.json) and "source_run" the run's files;
+# bench: `bench viewer --record`, a timing of a run's use (no "runs"): "bench" holds the numbers (its "what"
+# says which benchmark), "source_run" the run's files
+KINDS = ("run", "table", "runs", "export", "bench")
 DEFAULT_DIR = os.path.join("docs", "results")
 ALONE_MAX_OTHER_CORES = 0.10  # a tenth of a core on average: daemons and the shell, not a second job
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
@@ -227,6 +229,8 @@ def load_record(path: str) -> dict:
             raise RecordError(f"{path}: a run without metrics or config")
     if rec["kind"] == "export" and not (isinstance(rec.get("export"), dict) and isinstance(rec.get("source_run"), dict)):
         raise RecordError(f"{path}: an export record without its 'export' figures or 'source_run'")
+    if rec["kind"] == "bench" and not (isinstance(rec.get("bench"), dict) and isinstance(rec.get("source_run"), dict)):
+        raise RecordError(f"{path}: a bench record without its 'bench' figures or 'source_run'")
     return rec
 
 
