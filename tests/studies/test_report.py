@@ -326,6 +326,32 @@ def test_export_records_get_their_own_table_and_no_run_row(tmp_path):
     assert report.EXPORTS_TITLE not in report.render_results([], "docs/results")
 
 
+def test_viewer_bench_records_get_their_own_table(tmp_path):
+    run = _run_folder(tmp_path / "lego_run", {"scene": "lego", "task": "full", "iters": 100, "psnr": 20.0},
+                      'task = "full"\nscene = "lego"\n')
+    for name, cameras_only, first in (("viewer_decoded", False, 9.87), ("viewer_cameras", True, 2.04)):
+        bench = {"what": "viewer", "run": run, "device": "cpu", "threads": 2, "repeats": 3,
+                 "cameras_only": cameras_only, "scene": "lego", "scene_source": "dataset", "train_views": 100,
+                 "test_views": 200, "image_size": [400, 400], "step": 100, "load_seconds_first": first,
+                 "load_seconds_median": first - 0.5, "process_seconds_median": first + 3.0, "peak_rss_mb_max": 555.4}
+        cpu = {"wall_seconds": 30.0, "own_cpu_seconds": 20.0, "other_cores": 0.01, "alone": True}
+        rec = R.build_record(name, "bench", ["bench", "viewer", "--run", run], [], cpu, threads=2,
+                             extra={"bench": bench, "source_run": R.read_run_files(run)})
+        path = R.record_path(name, str(tmp_path / "docs" / "results"))
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        R.write_record(path, rec)
+    records = R.load_records(str(tmp_path / "docs" / "results"))
+    assert report.recorded_runs(records) == []
+    text = report.render_results(records, str(tmp_path / "docs" / "results"))
+    rows = [line for line in text[text.index(f"## {report.VIEWER_TITLE}"):].splitlines() if line.startswith("| [")]
+    assert len(rows) == 2
+    cams = next(r for r in rows if r.startswith("| [viewer_cameras]("))
+    dec = next(r for r in rows if r.startswith("| [viewer_decoded]("))
+    assert "| lego full, 100 iters | 100 + 200, 400x400 | cameras only | 2.04, 1.54 | 5.04 | 555 | 3 |" in cams
+    assert "| images decoded | 9.87, 9.37 | 12.87 |" in dec and "yes" in dec
+    assert report.VIEWER_TITLE not in report.render_results([], "docs/results")
+
+
 def test_an_export_record_without_its_figures_is_refused(tmp_path):
     path = _export_record(tmp_path, "x", 100, {"vertices_before": 1, "faces_before": 1, "pieces_before": 1,
                                                "vertices": 1, "faces": 1, "pieces": 1}, {"psnr": 20.0})

@@ -352,6 +352,37 @@ def export_table(records: list[dict], link_prefix: str) -> str:
         "metrics and config are in the record.")
 
 
+VIEWER_TITLE = "Viewer start-up"
+
+
+def viewer_table(records: list[dict], link_prefix: str) -> str:
+    """One row per ``bench viewer --record`` record: the run it loaded, how (cameras only, or its images
+    decoded), the first and median ``load_for_viewing`` seconds, the process's median wall-clock and peak
+    RSS, and whether the CPU was free. "" when there is none."""
+    recs = [r for r in records if r["kind"] == "bench" and r["bench"].get("what") == "viewer"]
+    if not recs:
+        return ""
+    lines = ["| record | run | views (train + test), size | load | load_for_viewing (s): first, median | "
+             "process (s), median | peak RSS (MB) | repeats | alone (other cores) | commit, date |",
+             "|" + "---|" * 10]
+    for rec in recs:
+        b, m, c = rec["bench"], rec["source_run"]["metrics"], rec["source_run"]["config"]
+        run = f"{m.get('scene', c.get('scene'))} {m.get('task', c.get('task'))}, {m.get('iters', c.get('iters'))} iters"
+        w, h = b["image_size"]
+        how = "cameras only" if b["cameras_only"] else "images decoded"
+        row = {"kind": rec["kind"], "commit": rec.get("commit"), "dirty": rec.get("dirty"), "date": rec["date"]}
+        lines.append(" | ".join([f"| {_link(rec['name'], link_prefix)}", run,
+                                 f"{b['train_views']} + {b['test_views']}, {w}x{h}", how,
+                                 f"{_fmt(b['load_seconds_first'], 2)}, {_fmt(b['load_seconds_median'], 2)}",
+                                 _fmt(b["process_seconds_median"], 2), _fmt(b["peak_rss_mb_max"], 0),
+                                 str(b["repeats"]), _alone(rec["cpu"]), _provenance(row)]) + " |")
+    return "\n".join(lines) + (
+        "\n\n`warpnerf bench viewer --run RUN --record NAME` (docs/outputs.md): each repeat a fresh process that "
+        "imports the viewer and runs `load_for_viewing` as `warpnerf view` does; the first repeat is the one a user "
+        "waits for, the median is over the others. A run whose checkpoint records the background it trained with "
+        "is loaded cameras only; an older run has its images decoded (what every viewer start-up did before).")
+
+
 # --- documents ------------------------------------------------------------------------------------
 
 def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
@@ -386,6 +417,9 @@ def render_results(records: list[dict], records_dir: str = DEFAULT_DIR) -> str:
     exports = export_table(records, prefix)
     if exports:
         parts += ["", f"## {EXPORTS_TITLE}", "", exports]
+    viewer = viewer_table(records, prefix)
+    if viewer:
+        parts += ["", f"## {VIEWER_TITLE}", "", viewer]
     return "\n".join(parts) + "\n"
 
 
