@@ -301,7 +301,8 @@ def build_parser(help_task: str | None = None) -> argparse.ArgumentParser:
                          "random (drawn with each seed); a table row each (default fps)")
     tb.add_argument("--arms", type=_name_list("arm", tuple(sweep.ARMS)), default=["g2fr", "nog2fr"],
                     help="comma-separated: g2fr (G2fR, fixed schedule of eq. 15), adaptive (G2fR, a level opens when "
-                         "the training loss plateaus), nog2fr (no masking); paired per seed and view set "
+                         "the training loss plateaus), heldout (G2fR, levels open while the PSNR of val views stops "
+                         "rising and close when it falls), nog2fr (no masking); paired per seed and view set "
                          "(default g2fr,nog2fr)")
     tb.add_argument("--config", default=None, help="TOML file overriding the task presets (every arm)")
     tb.add_argument("--reuse", action="store_true",
