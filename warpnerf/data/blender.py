@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from warpnerf.data.errors import DatasetError, check_frames, check_intrinsics, json_number, read_json_object
-from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscale_depth, downscaled_size, image_header,
+from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscale_depth, downscaled_size, image_headers,
                                   load_parallel, read_image)
 from warpnerf.data.scene import Scene, Views, stand_in
 from warpnerf.geometry.rayspace import RaySpace
@@ -142,6 +142,29 @@ def depth_header(path: str) -> tuple[int, int]:
     return int(shape[0]), int(shape[1] if len(shape) > 1 else 0)
 
 
+def _check_channels(first_path: str, channels: int, allow_rgb: bool) -> None:
+    """The Blender layout promises RGBA: an RGB first image is refused, or (``allow_rgb``) used with a warning."""
+    if channels != 4:
+        if not allow_rgb:
+            raise DatasetError(f"{first_path} has no alpha channel but the Blender layout promises RGBA "
+                               "(pass --allow-rgb to train on it as is)")
+        print(f"warpnerf: warning: {first_path} has no alpha channel; images are used as is", file=sys.stderr)
+
+
+def _check_like_first(img_path: str, shape, first_path: str, first_shape) -> None:
+    """An image's (h, w, channels) against the first image's: same size, alpha in both or neither."""
+    (h, w, c), (h0, w0, c0) = shape, first_shape
+    if (h, w) != (h0, w0):
+        raise DatasetError(f"image size mismatch: {img_path} is {w}x{h}, expected {w0}x{h0} like {first_path}")
+    if (c == 4) != (c0 == 4):
+        raise DatasetError(f"channel mismatch: {img_path} has {c} channels, {first_path} has {c0}")
+
+
+def _check_depth_size(d_path: str, size, h0: int, w0: int) -> None:
+    if tuple(size) != (h0, w0):
+        raise DatasetError(f"depth size mismatch: {d_path} is {size[1]}x{size[0]}, expected {w0}x{h0}")
+
+
 def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allow_rgb: bool = False,
                 pixels: bool = True) -> Views:
     meta = read_transforms(path)
@@ -159,11 +182,7 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
         return _cameras_only_split(root, path, meta, paths, c2w, downscale, keep_alpha, allow_rgb)
     first = read_image(paths[0])
     h0, w0 = first.shape[:2]
-    if first.shape[-1] != 4:
-        if not allow_rgb:
-            raise DatasetError(f"{paths[0]} has no alpha channel but the Blender layout promises RGBA "
-                               "(pass --allow-rgb to train on it as is)")
-        print(f"warpnerf: warning: {paths[0]} has no alpha channel; images are used as is", file=sys.stderr)
+    _check_channels(paths[0], first.shape[-1], allow_rgb)
     h, w = h0 // downscale, w0 // downscale
     images = np.empty((n, h, w, 3), np.float32)
     alpha = np.empty((n, h, w), np.float32) if keep_alpha else None
@@ -172,13 +191,7 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
 
     def load_one(i: int, img_path: str) -> None:
         img = first if i == 0 else read_image(img_path)
-        if img.shape[:2] != (h0, w0):
-            raise DatasetError(
-                f"image size mismatch: {img_path} is {img.shape[1]}x{img.shape[0]}, "
-                f"expected {w0}x{h0} like {paths[0]}"
-            )
-        if (img.shape[-1] == 4) != (first.shape[-1] == 4):
-            raise DatasetError(f"channel mismatch: {img_path} has {img.shape[-1]} channels, {paths[0]} has {first.shape[-1]}")
+        _check_like_first(img_path, img.shape, paths[0], first.shape)
         rgb = img[..., :3] if img.shape[-1] >= 3 else np.repeat(img, 3, -1)
         a = img[..., 3] if img.shape[-1] == 4 else np.ones((h0, w0), np.float32)
         # Composite before downscaling: compositing is linear in (rgb * a, a), so the order
@@ -189,8 +202,7 @@ def _load_split(root: str, path: str, downscale: int, bg, keep_alpha: bool, allo
         if depth is not None:
             d_path = os.path.normpath(os.path.join(root, str(frames[i]["depth_path"])))
             d = read_depth(d_path, depth_scale)
-            if d.shape != (h0, w0):
-                raise DatasetError(f"depth size mismatch: {d_path} is {d.shape[1]}x{d.shape[0]}, expected {w0}x{h0}")
+            _check_depth_size(d_path, d.shape, h0, w0)
             depth[i] = downscale_depth(d, downscale)
 
     load_parallel(paths, load_one)
@@ -231,23 +243,11 @@ def _cameras_only_split(root: str, path: str, meta: dict, paths: list[str], c2w:
     frames = meta["frames"]
     n = len(frames)
     has_depth = all("depth_path" in fr for fr in frames)
-    heads = [None] * n
-
-    def head(i: int, img_path: str) -> None:
-        heads[i] = image_header(img_path)
-
-    load_parallel(paths, head)
+    heads = image_headers(paths)
     h0, w0, c0 = heads[0]
-    if c0 != 4:
-        if not allow_rgb:
-            raise DatasetError(f"{paths[0]} has no alpha channel but the Blender layout promises RGBA "
-                               "(pass --allow-rgb to train on it as is)")
-        print(f"warpnerf: warning: {paths[0]} has no alpha channel; images are used as is", file=sys.stderr)
-    for img_path, (hi, wi, ci) in zip(paths, heads):
-        if (hi, wi) != (h0, w0):
-            raise DatasetError(f"image size mismatch: {img_path} is {wi}x{hi}, expected {w0}x{h0} like {paths[0]}")
-        if (ci == 4) != (c0 == 4):
-            raise DatasetError(f"channel mismatch: {img_path} has {ci} channels, {paths[0]} has {c0}")
+    _check_channels(paths[0], c0, allow_rgb)
+    for img_path, shape in zip(paths, heads):
+        _check_like_first(img_path, shape, paths[0], heads[0])
     h, w = downscaled_size(h0, w0, downscale)
     if has_depth:
         if meta.get("depth_scale") is None and any(not str(fr["depth_path"]).endswith(".npy") for fr in frames):
@@ -256,9 +256,7 @@ def _cameras_only_split(root: str, path: str, meta: dict, paths: list[str], c2w:
                                "transforms file has no 'depth_scale'")
         for fr in frames:
             d_path = os.path.normpath(os.path.join(root, str(fr["depth_path"])))
-            dh, dw = depth_header(d_path)
-            if (dh, dw) != (h0, w0):
-                raise DatasetError(f"depth size mismatch: {d_path} is {dw}x{dh}, expected {w0}x{h0}")
+            _check_depth_size(d_path, depth_header(d_path), h0, w0)
     focal_full, cx_full, cy_full = _intrinsics(path, meta, w0, h0)
     return Views(
         images=stand_in((n, h, w, 3)),

@@ -73,6 +73,17 @@ def image_header(path: str) -> tuple[int, int, int]:
     return int(h), int(w), _MODE_CHANNELS.get(mode, 4)
 
 
+def image_headers(paths: list[str]) -> list[tuple[int, int, int]]:
+    """:func:`image_header` of every path, in a thread pool (:func:`load_parallel`), in order."""
+    heads: list = [None] * len(paths)
+
+    def head(i: int, path: str) -> None:
+        heads[i] = image_header(path)
+
+    load_parallel(paths, head)
+    return heads
+
+
 def area_downscale(img: np.ndarray, factor: int) -> np.ndarray:
     """Average ``factor`` x ``factor`` blocks of (H, W, ...) -> (H // factor, W // factor, ...).
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from warpnerf.data.errors import DatasetError, check_c2w, check_camera_spread
-from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscaled_size, image_header, load_parallel,
+from warpnerf.data.images import (IMAGE_SUFFIXES, area_downscale, downscaled_size, image_headers, load_parallel,
                                   read_image)
 from warpnerf.data.scene import Scene, Views, stand_in
 from warpnerf.geometry.rayspace import RaySpace, ndc_extent
@@ -108,12 +108,7 @@ def load_llff(
         first = read_image(paths[0])
         h_img, w_img = first.shape[:2]
     else:
-        heads = [None] * len(paths)
-
-        def head(i: int, path: str) -> None:
-            heads[i] = image_header(path)
-
-        load_parallel(paths, head)
+        heads = image_headers(paths)
         h_img, w_img = heads[0][:2]
     if abs(h_img - hwf[0] / factor) > 1.0 or abs(w_img - hwf[1] / factor) > 1.0:
         raise DatasetError(
